@@ -1,0 +1,385 @@
+"""Configuration: one TOML table and one frozen dataclass per stage.
+
+A config file has the tables ``[run]``, ``[scan]``, ``[objects]`` and one per stage (``[ingest]``,
+``[select]``, ...). Every table and key is optional; missing keys take the defaults below. Unknown
+tables and keys, wrong types and out-of-range values are :class:`~pipeline.errors.ConfigError` that name
+the key, the value and the valid choices. ``--set table.key=value`` overrides a value on the command
+line (the value is parsed as TOML, falling back to a plain string).
+
+Validation is declared on each field with :func:`option` (help text, choices, bounds, path checks) and
+applied once, at load time, by :func:`load_config`; stages never re-validate.
+
+Examples
+--------
+>>> cfg = build_config({"run": {"seed": 3}, "simulate": {"drops": 2}})
+>>> cfg.run.seed, cfg.simulate.drops
+(3, 2)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pipeline.errors import ConfigError
+
+BUILTIN_PREFIX = "builtin:"  # scan/object paths that name a built-in generator instead of a folder
+
+
+def option(default: Any, help: str, *, choices: tuple | None = None, min: float | None = None,
+           max: float | None = None, min_exclusive: bool = False, path: str | None = None) -> Any:
+    """Declare a config field with its validation rules.
+
+    Parameters
+    ----------
+    default
+        Default value (tuples for lists).
+    help
+        One-line description, with the unit; shown in errors and the configuration reference.
+    choices
+        Allowed values (for strings, or for every element of a tuple of strings).
+    min, max
+        Inclusive bounds for numbers (``min`` exclusive when ``min_exclusive``).
+    path
+        ``"file"``, ``"dir"`` or ``"any"``: the value is a path (or paths) that must exist, resolved
+        relative to the config file's folder. Empty strings and ``builtin:...`` values are not checked.
+    """
+    meta = {"help": help, "choices": choices, "min": min, "max": max,
+            "min_exclusive": min_exclusive, "path": path}
+    if isinstance(default, (list, dict)):
+        raise TypeError("config defaults must be immutable (use a tuple)")
+    return field(default=default, metadata=meta)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Tables
+# ---------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Run-wide settings."""
+
+    seed: int = option(0, "root random seed; every stage, scene, drop and frame derives its own from it", min=0)
+    workers: int = option(1, "worker processes for per-item work; 0 = one per core", min=0)
+    executor: str = option("local", "where items run", choices=("local", "ray"))
+    ray_address: str = option("", "Ray cluster address to join (executor = 'ray'); empty = start a local one")
+    progress: str = option("auto", "progress bars on stderr: auto = only when stderr is a terminal",
+                           choices=("auto", "on", "off"))
+
+
+@dataclass(frozen=True)
+class ScanConfig:
+    """Which room scans to use."""
+
+    paths: tuple[str, ...] = option(("builtin:demo",),
+                                    "scan folders, or 'builtin:demo' for the built-in synthetic scan",
+                                    path="dir")
+    format: str = option("auto", "scan layout; auto = detect from the folder's files",
+                         choices=("auto", "7scenes", "3rscan", "scannet", "transforms"))
+    mesh: str = option("", "room mesh file for layouts without one (transforms.json); empty = reconstruct",
+                       path="file")
+    max_frames: int = option(0, "use at most this many frames per scan, evenly spaced; 0 = all", min=0)
+
+
+@dataclass(frozen=True)
+class ObjectsConfig:
+    """Which object models to insert."""
+
+    paths: tuple[str, ...] = option(("builtin:shapes",),
+                                    "object files or folders (BOP models/, .ply/.obj/.gltf/.glb); "
+                                    "'builtin:shapes' = procedural demo objects", path="any")
+    scale: float = option(0.0, "metres per model unit; 0 = from the format (BOP: mm, glTF: m, else m)", min=0.0)
+
+
+@dataclass(frozen=True)
+class IngestConfig:
+    """Reading scans and object libraries; room reconstruction when a scan has no mesh."""
+
+    tsdf_voxel: float = option(0.02, "TSDF voxel size, metres", min=0.0, min_exclusive=True)
+    tsdf_trunc: float = option(0.08, "TSDF truncation distance, metres", min=0.0, min_exclusive=True)
+    depth_max: float = option(4.0, "ignore depth beyond this distance during fusion, metres",
+                              min=0.0, min_exclusive=True)
+
+
+@dataclass(frozen=True)
+class SelectConfig:
+    """Frame selection: drop blurred frames, keep diverse views."""
+
+    method: str = option("thesis", "blur scoring method", choices=("thesis", "none"))
+    min_angle_deg: float = option(0.0, "minimum viewing-angle change between kept frames, degrees", min=0.0)
+    min_baseline_m: float = option(0.0, "minimum camera travel between kept frames, metres", min=0.0)
+    max_frames: int = option(0, "keep at most this many frames per scan; 0 = no limit", min=0)
+
+
+@dataclass(frozen=True)
+class PrepConfig:
+    """Mesh preparation (meshprep) of the room and the objects for physics and tracing."""
+
+    room_max_error: float = option(0.005, "largest deviation allowed when simplifying the room, metres",
+                                   min=0.0)
+
+
+@dataclass(frozen=True)
+class SimulateConfig:
+    """Rigid-body drops of objects into the room."""
+
+    drops: int = option(1, "drops (simulations) per scan", min=0)
+    objects_per_drop: int = option(5, "objects spawned per drop", min=1)
+    timestep: float = option(0.02, "simulation step, seconds", min=0.0, min_exclusive=True)
+    max_time: float = option(40.0, "simulated time limit per drop, seconds", min=0.0, min_exclusive=True)
+
+
+@dataclass(frozen=True)
+class RasterConfig:
+    """Depth, label and mask passes and the annotations derived from them."""
+
+    visib_threshold: float = option(0.3, "an instance counts as visible from this visible fraction on",
+                                    min=0.0, max=1.0)
+    min_visible_area: float = option(0.01, "reject frames whose visible object pixels cover less than "
+                                     "this share of the image", min=0.0, max=1.0)
+    image_scale: float = option(1.0, "render at this multiple of the scan's resolution",
+                                min=0.0, min_exclusive=True)
+
+
+@dataclass(frozen=True)
+class TraceConfig:
+    """Path-traced ambient occlusion and physically based shading of the objects."""
+
+    spp: int = option(16, "samples per pixel (upper bound when adaptive)", min=1)
+    lighting: str = option("scan", "light source: the scan's own radiance or the published four lights",
+                           choices=("scan", "published"))
+
+
+@dataclass(frozen=True)
+class CompositeConfig:
+    """Fusing the rendered objects into the real photo."""
+
+    mode: str = option("full", "blend: published = PBR x AO inside the mask; full = edges, shadows, camera look",
+                       choices=("published", "full"))
+
+
+@dataclass(frozen=True)
+class ExportConfig:
+    """Dataset writers."""
+
+    formats: tuple[str, ...] = option(("bop", "coco"), "dataset formats to write", choices=("bop", "coco"))
+    image_format: str = option("jpg", "colour image files", choices=("jpg", "png"))
+    chunk_size: int = option(1000, "images per BOP scene folder", min=1)
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration: one attribute per TOML table."""
+
+    run: RunConfig = RunConfig()
+    scan: ScanConfig = ScanConfig()
+    objects: ObjectsConfig = ObjectsConfig()
+    ingest: IngestConfig = IngestConfig()
+    select: SelectConfig = SelectConfig()
+    prep: PrepConfig = PrepConfig()
+    simulate: SimulateConfig = SimulateConfig()
+    raster: RasterConfig = RasterConfig()
+    trace: TraceConfig = TraceConfig()
+    composite: CompositeConfig = CompositeConfig()
+    export: ExportConfig = ExportConfig()
+
+
+TABLES: dict[str, type] = {f.name: typing.get_type_hints(Config)[f.name] for f in dataclasses.fields(Config)}
+
+
+# ---------------------------------------------------------------------------------------------------
+# Loading and validation
+# ---------------------------------------------------------------------------------------------------
+
+def _type_name(tp: Any) -> str:
+    origin = typing.get_origin(tp)
+    if origin is tuple:
+        return f"list of {_type_name(typing.get_args(tp)[0])}"
+    return {int: "integer", float: "number", str: "string", bool: "true/false"}.get(tp, str(tp))
+
+
+def _coerce(key: str, value: Any, tp: Any, meta: dict) -> Any:
+    """Check ``value`` against the field type ``tp`` and the rules in ``meta``; return the typed value."""
+    origin = typing.get_origin(tp)
+    if origin is tuple:
+        elem = typing.get_args(tp)[0]
+        if isinstance(value, str):
+            value = [value]
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{key} = {value!r}: expected a {_type_name(tp)}; "
+                              f"{meta['help']}")
+        return tuple(_coerce(key, v, elem, meta) for v in value)
+    if tp is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key} = {value!r}: expected true or false; {meta['help']}")
+        return value
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key} = {value!r}: expected an integer; {meta['help']}")
+    elif tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key} = {value!r}: expected a number; {meta['help']}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"{key} = {value!r}: expected a finite number; {meta['help']}")
+    elif tp is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key} = {value!r}: expected a string; {meta['help']}")
+    if meta["choices"] is not None and value not in meta["choices"]:
+        valid = ", ".join(repr(c) for c in meta["choices"])
+        raise ConfigError(f"{key} = {value!r}: not a valid choice; valid: {valid}")
+    lo, hi = meta["min"], meta["max"]
+    if lo is not None and (value < lo or (meta["min_exclusive"] and value == lo)):
+        rel = ">" if meta["min_exclusive"] else ">="
+        raise ConfigError(f"{key} = {value!r}: must be {rel} {lo}; {meta['help']}")
+    if hi is not None and value > hi:
+        raise ConfigError(f"{key} = {value!r}: must be <= {hi}; {meta['help']}")
+    return value
+
+
+def _resolve_path(key: str, value: str, kind: str, base: Path) -> str:
+    if value == "" or value.startswith(BUILTIN_PREFIX):
+        return value
+    p = Path(value).expanduser()
+    if not p.is_absolute():
+        p = (base / p)
+    p = Path(str(p.resolve()))
+    if not p.exists():
+        raise ConfigError(f"{key} = {value!r}: {p} does not exist; fix the path "
+                          f"(relative paths are read from the config file's folder {base})")
+    if kind == "file" and not p.is_file():
+        raise ConfigError(f"{key} = {value!r}: {p} is a folder, expected a file")
+    if kind == "dir" and not p.is_dir():
+        raise ConfigError(f"{key} = {value!r}: {p} is a file, expected a folder")
+    return str(p)
+
+
+def _build_table(name: str, cls: type, raw: Any, base: Path) -> Any:
+    if not isinstance(raw, dict):
+        raise ConfigError(f"[{name}] must be a table, got {raw!r}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(raw) - set(fields))
+    if unknown:
+        raise ConfigError(f"unknown key {name}.{unknown[0]}; valid keys in [{name}]: {', '.join(fields)}")
+    kwargs = {}
+    for key, value in raw.items():
+        meta = fields[key].metadata
+        v = _coerce(f"{name}.{key}", value, hints[key], meta)
+        if meta.get("path"):
+            if isinstance(v, tuple):
+                v = tuple(_resolve_path(f"{name}.{key}", x, meta["path"], base) for x in v)
+            else:
+                v = _resolve_path(f"{name}.{key}", v, meta["path"], base)
+        kwargs[key] = v
+    return cls(**kwargs)
+
+
+def build_config(raw: dict, *, base_dir: str | Path = ".") -> Config:
+    """Build and validate a :class:`Config` from nested plain dicts (a parsed TOML document).
+
+    Parameters
+    ----------
+    raw
+        ``{table: {key: value}}``; missing tables and keys take defaults.
+    base_dir
+        Folder that relative paths are resolved against (the config file's folder).
+    """
+    if not isinstance(raw, dict):
+        raise ConfigError(f"config must be a table of tables, got {type(raw).__name__}")
+    unknown = sorted(set(raw) - set(TABLES))
+    if unknown:
+        raise ConfigError(f"unknown table [{unknown[0]}]; valid tables: {', '.join(TABLES)}")
+    base = Path(base_dir).resolve()
+    return Config(**{name: _build_table(name, TABLES[name], raw.get(name, {}), base) for name in TABLES})
+
+
+def parse_override(text: str) -> tuple[str, str, Any]:
+    """Parse ``table.key=value`` from ``--set``; the value is TOML, else a bare string."""
+    if "=" not in text or "." not in text.split("=", 1)[0]:
+        raise ConfigError(f"--set {text!r}: expected table.key=value, e.g. --set run.seed=3")
+    lhs, rhs = text.split("=", 1)
+    table, key = lhs.strip().split(".", 1)
+    try:
+        value = tomllib.loads(f"v = {rhs.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = rhs.strip()
+    return table, key, value
+
+
+def load_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] = ()) -> Config:
+    """Read a TOML config file (or only defaults when ``path`` is None) and apply ``--set`` overrides."""
+    raw: dict = {}
+    base = Path.cwd()
+    if path is not None:
+        p = Path(path)
+        if not p.is_file():
+            raise ConfigError(f"config file {p} does not exist; pass an existing .toml file "
+                              f"(examples in configs/)")
+        try:
+            raw = tomllib.loads(p.read_text(encoding="utf-8"))
+        except tomllib.TOMLDecodeError as e:
+            raise ConfigError(f"{p}: not valid TOML: {e}") from None
+        except UnicodeDecodeError as e:
+            raise ConfigError(f"{p}: not a UTF-8 text file ({e.reason}); is this a TOML config?") from None
+        base = p.resolve().parent
+    for text in overrides:
+        table, key, value = parse_override(text)
+        raw.setdefault(table, {})
+        if not isinstance(raw[table], dict):
+            raise ConfigError(f"--set {text!r}: [{table}] is not a table")
+        raw[table][key] = value
+    return build_config(raw, base_dir=base)
+
+
+def config_to_dict(cfg: Config) -> dict:
+    """Plain nested dict of a config (tuples become lists), for saving."""
+    out = {}
+    for f in dataclasses.fields(cfg):
+        table = getattr(cfg, f.name)
+        out[f.name] = {k: list(v) if isinstance(v, tuple) else v
+                       for k, v in dataclasses.asdict(table).items()}
+    return out
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {v!r} as TOML")
+
+
+def dump_config(cfg: Config) -> str:
+    """TOML text of a resolved config; :func:`load_config` reads it back to an equal config."""
+    lines = []
+    for table, values in config_to_dict(cfg).items():
+        lines.append(f"[{table}]")
+        lines += [f"{k} = {_toml_value(v)}" for k, v in values.items()]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def reference_markdown() -> str:
+    """Markdown configuration reference generated from the field declarations (for the README)."""
+    out = []
+    for table, cls in TABLES.items():
+        out.append(f"### `[{table}]` - {cls.__doc__.strip().splitlines()[0]}\n")
+        out.append("| key | default | meaning |")
+        out.append("|---|---|---|")
+        for f in dataclasses.fields(cls):
+            m = f.metadata
+            extra = f" (one of {', '.join(map(repr, m['choices']))})" if m["choices"] else ""
+            out.append(f"| `{f.name}` | `{_toml_value(f.default)}` | {m['help']}{extra} |")
+        out.append("")
+    return "\n".join(out)
+

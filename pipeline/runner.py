@@ -1,0 +1,207 @@
+"""The stage contract: items, done markers, resumable execution.
+
+A stage splits its work into :class:`Item` s (a scene, a drop, a frame). ``plan`` lists them from
+what earlier stages wrote; ``run_item`` does one, writing every output atomically under the stage's
+folder and returning a small JSON-able summary. When ``run_item`` returns, the runner writes the
+item's *done marker* (``RUN/<stage>/_items/<key>.done.json``, atomically, after the outputs). An item
+with a done marker is never run again, so a run killed at any moment resumes where it stopped and
+loses nothing it had finished. Items must be deterministic functions of the config, the seed and
+earlier stages' outputs: redoing an item whose marker was not yet written gives the same bytes.
+
+A failing item is recorded (``<key>.failed.json``: the cause, one line for a
+:class:`~pipeline.errors.UserError`, the traceback otherwise), the stage goes on with the other items,
+and the run ends with exit code 1. Failed items are retried when the run is started again.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import multiprocessing
+import os
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from pipeline.config import Config, build_config, config_to_dict
+from pipeline.errors import ConfigError, UserError
+from pipeline.io import atomic_write_json, read_json
+from pipeline.seeding import item_rng
+
+log = logging.getLogger(__name__)
+
+ITEMS_DIR = "_items"
+
+
+@dataclass(frozen=True)
+class Item:
+    """One independent unit of a stage's work."""
+
+    key: str                 # unique within the stage; folder-safe words joined by "/", e.g. "demo/drop0001"
+    data: dict = field(default_factory=dict)  # JSON-able parameters the stage needs to do it
+
+
+@dataclass(frozen=True)
+class StageContext:
+    """What a stage function may read: the run folder and the resolved config."""
+
+    run_dir: Path
+    cfg: Config
+    stage: str
+
+    @property
+    def stage_dir(self) -> Path:
+        return self.run_dir / self.stage
+
+    def rng(self, item: Item) -> np.random.Generator:
+        """The item's own generator, derived from the root seed, the stage name and the item key."""
+        return item_rng(self.cfg.run.seed, self.stage, item.key)
+
+
+@dataclass(frozen=True)
+class Stage:
+    """A pipeline stage: how to list its items and how to do one."""
+
+    name: str
+    plan: Callable[[StageContext], list[Item]]
+    run_item: Callable[[StageContext, Item], dict | None]
+    # Called once after every item finished (merging, reports); must itself be idempotent.
+    finish: Callable[[StageContext, dict[str, dict]], None] | None = None
+    # A stage not built yet: runs nothing and says so. The string says which issue builds it.
+    placeholder: str = ""
+
+
+@dataclass
+class StageReport:
+    """What happened in one stage of one invocation."""
+
+    stage: str
+    total: int = 0
+    done: int = 0        # items run to completion now
+    skipped: int = 0     # items already finished by an earlier invocation
+    failed: int = 0
+    seconds: float = 0.0
+    item_seconds: list[float] = field(default_factory=list)
+    failures: dict[str, str] = field(default_factory=dict)
+    placeholder: str = ""
+
+    def as_dict(self) -> dict:
+        per = float(np.mean(self.item_seconds)) if self.item_seconds else 0.0
+        return {"stage": self.stage, "total": self.total, "done": self.done, "skipped": self.skipped,
+                "failed": self.failed, "seconds": round(self.seconds, 3),
+                "seconds_per_item": round(per, 4), "failures": self.failures,
+                "placeholder": self.placeholder}
+
+
+def _marker(run_dir: Path, stage: str, key: str, kind: str) -> Path:
+    return run_dir / stage / ITEMS_DIR / f"{key}.{kind}.json"
+
+
+def is_done(run_dir: Path, stage: str, key: str) -> bool:
+    return _marker(run_dir, stage, key, "done").is_file()
+
+
+def item_results(run_dir: Path, stage: str) -> dict[str, dict]:
+    """Summaries returned by ``run_item`` for every finished item of ``stage``, by key."""
+    root = Path(run_dir) / stage / ITEMS_DIR
+    out = {}
+    if root.is_dir():
+        for p in sorted(root.rglob("*.done.json")):
+            out[str(p.relative_to(root))[: -len(".done.json")]] = read_json(p)
+    return out
+
+
+def execute_item(run_dir: str, cfg_dict: dict, stage_name: str, item: Item) -> tuple[str, str | None, float]:
+    """Run one item and write its marker; return ``(key, error or None, seconds)``.
+
+    Module-level so a worker process can run it (pickled by reference).
+    """
+    from pipeline.stages import get_stage
+
+    t0 = time.perf_counter()
+    run = Path(run_dir)
+    cfg = build_config(cfg_dict, base_dir=run)
+    stage = get_stage(stage_name)
+    ctx = StageContext(run_dir=run, cfg=cfg, stage=stage_name)
+    failed = _marker(run, stage_name, item.key, "failed")
+    try:
+        result = stage.run_item(ctx, item) or {}
+    except UserError as e:
+        msg = str(e)
+        atomic_write_json(failed, {"key": item.key, "error": msg, "user_error": True})
+        return item.key, msg, time.perf_counter() - t0
+    except Exception as e:  # noqa: BLE001 - any bug in one item must not lose the others' work
+        tb = traceback.format_exc()
+        atomic_write_json(failed, {"key": item.key, "error": f"{type(e).__name__}: {e}",
+                                   "traceback": tb, "user_error": False})
+        log.debug("item %s/%s failed:\n%s", stage_name, item.key, tb)
+        return item.key, f"{type(e).__name__}: {e} (bug; traceback in {failed})", time.perf_counter() - t0
+    atomic_write_json(_marker(run, stage_name, item.key, "done"), result)
+    failed.unlink(missing_ok=True)
+    return item.key, None, time.perf_counter() - t0
+
+
+def _workers(cfg: Config) -> int:
+    n = cfg.run.workers
+    return (os.cpu_count() or 1) if n == 0 else n
+
+
+def run_stage(run_dir: Path, cfg: Config, stage: Stage,
+              on_progress: Callable[[int, int, float], None] | None = None) -> StageReport:
+    """Run every unfinished item of ``stage``; skip finished ones; record failures.
+
+    ``on_progress(finished, total, elapsed_seconds)`` is called after each item (the CLI draws a bar).
+    """
+    report = StageReport(stage=stage.name, placeholder=stage.placeholder)
+    t0 = time.perf_counter()
+    if stage.placeholder:
+        log.warning("stage %s is a PLACEHOLDER and did nothing: %s", stage.name, stage.placeholder)
+        return report
+    ctx = StageContext(run_dir=run_dir, cfg=cfg, stage=stage.name)
+    items = stage.plan(ctx)
+    keys = [it.key for it in items]
+    if len(set(keys)) != len(keys):
+        raise RuntimeError(f"stage {stage.name} planned duplicate item keys")
+    report.total = len(items)
+    todo = [it for it in items if not is_done(run_dir, stage.name, it.key)]
+    report.skipped = report.total - len(todo)
+    finished = report.skipped
+    if on_progress:
+        on_progress(finished, report.total, 0.0)
+
+    def record(key: str, err: str | None, sec: float) -> None:
+        nonlocal finished
+        finished += 1
+        if err is None:
+            report.done += 1
+            report.item_seconds.append(sec)
+        else:
+            report.failed += 1
+            report.failures[key] = err
+            log.error("%s %s failed: %s", stage.name, key, err)
+        if on_progress:
+            on_progress(finished, report.total, time.perf_counter() - t0)
+
+    cfg_dict = config_to_dict(cfg)
+    n_workers = min(_workers(cfg), max(1, len(todo)))
+    if cfg.run.executor == "ray":
+        raise ConfigError("run.executor = 'ray': the Ray executor is not built yet (issue 11); "
+                          "use run.executor = 'local'")
+    if n_workers <= 1:
+        for it in todo:
+            record(*execute_item(str(run_dir), cfg_dict, stage.name, it))
+    else:
+        # spawn, not fork: OpenGL/Embree state must never be shared with a forked child.
+        ctx_mp = multiprocessing.get_context("spawn")
+        with cf.ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx_mp) as pool:
+            futs = [pool.submit(execute_item, str(run_dir), cfg_dict, stage.name, it) for it in todo]
+            for fut in cf.as_completed(futs):
+                record(*fut.result())
+    if stage.finish is not None:  # also after failures: finish what can be finished
+        stage.finish(ctx, item_results(run_dir, stage.name))
+    report.seconds = time.perf_counter() - t0
+    return report
