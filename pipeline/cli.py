@@ -32,7 +32,9 @@ REPORT_NAME = "run.json"        # per-stage report of the last invocation (timin
 EXECUTION_ONLY = {("run", "workers"), ("run", "executor"), ("run", "ray_address"), ("run", "progress")}
 
 # Commands that are not stages: name -> (module with add_arguments(parser) and run(args) -> int, help)
-EXTRA_COMMANDS: dict[str, tuple[str, str]] = {}
+EXTRA_COMMANDS: dict[str, tuple[str, str]] = {
+    "make-scan": ("pipeline.synthscan.cli", "write a procedural room scan with ground truth in a real scan layout"),
+}
 
 PACKAGES = ("numpy", "open3d", "pymeshlab", "manifold3d", "embreex", "pyrender", "PyOpenGL",
             "opencv-contrib-python-headless", "scikit-image", "pycocotools", "matplotlib")
