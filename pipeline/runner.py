@@ -115,17 +115,19 @@ def item_results(run_dir: Path, stage: str) -> dict[str, dict]:
     return out
 
 
-def execute_item(run_dir: str, cfg_dict: dict, stage_name: str, item: Item) -> tuple[str, str | None, float]:
+def execute_item(run_dir: str, cfg_dict: dict, stage_ref: str, item: Item) -> tuple[str, str | None, float]:
     """Run one item and write its marker; return ``(key, error or None, seconds)``.
 
-    Module-level so a worker process can run it (pickled by reference).
+    Module-level so a worker process can run it (pickled by reference). ``stage_ref`` is a registry
+    name or ``"module:attribute"``.
     """
     from pipeline.stages import get_stage
 
     t0 = time.perf_counter()
     run = Path(run_dir)
     cfg = build_config(cfg_dict, base_dir=run)
-    stage = get_stage(stage_name)
+    stage = get_stage(stage_ref)
+    stage_name = stage.name
     ctx = StageContext(run_dir=run, cfg=cfg, stage=stage_name)
     failed = _marker(run, stage_name, item.key, "failed")
     try:
@@ -151,11 +153,14 @@ def _workers(cfg: Config) -> int:
 
 
 def run_stage(run_dir: Path, cfg: Config, stage: Stage,
-              on_progress: Callable[[int, int, float], None] | None = None) -> StageReport:
+              on_progress: Callable[[int, int, float], None] | None = None,
+              stage_ref: str | None = None) -> StageReport:
     """Run every unfinished item of ``stage``; skip finished ones; record failures.
 
     ``on_progress(finished, total, elapsed_seconds)`` is called after each item (the CLI draws a bar).
+    ``stage_ref`` tells worker processes where to find the stage (default: its registry name).
     """
+    stage_ref = stage_ref or stage.name
     report = StageReport(stage=stage.name, placeholder=stage.placeholder)
     t0 = time.perf_counter()
     if stage.placeholder:
@@ -193,12 +198,12 @@ def run_stage(run_dir: Path, cfg: Config, stage: Stage,
                           "use run.executor = 'local'")
     if n_workers <= 1:
         for it in todo:
-            record(*execute_item(str(run_dir), cfg_dict, stage.name, it))
+            record(*execute_item(str(run_dir), cfg_dict, stage_ref, it))
     else:
         # spawn, not fork: OpenGL/Embree state must never be shared with a forked child.
         ctx_mp = multiprocessing.get_context("spawn")
         with cf.ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx_mp) as pool:
-            futs = [pool.submit(execute_item, str(run_dir), cfg_dict, stage.name, it) for it in todo]
+            futs = [pool.submit(execute_item, str(run_dir), cfg_dict, stage_ref, it) for it in todo]
             for fut in cf.as_completed(futs):
                 record(*fut.result())
     if stage.finish is not None:  # also after failures: finish what can be finished

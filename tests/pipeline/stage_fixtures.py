@@ -1,0 +1,38 @@
+"""Small real stages used by the runner tests (importable by worker processes)."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+from pipeline.errors import InputError
+from pipeline.io import atomic_save_npz
+from pipeline.runner import Item, Stage
+
+
+def _plan(ctx):
+    return [Item(key=f"scene/f{i:03d}", data={"i": i}) for i in range(int(os.environ.get("SS_TEST_ITEMS", "6")))]
+
+
+def _run(ctx, item):
+    rng = ctx.rng(item)
+    delay = float(os.environ.get("SS_TEST_DELAY", "0"))
+    if delay:
+        time.sleep(delay)
+    arr = rng.random((32, 32)).astype(np.float32)
+    atomic_save_npz(ctx.stage_dir / f"{item.key}.npz", a=arr)
+    return {"sum": float(arr.sum())}
+
+
+def _run_failing(ctx, item):
+    if item.data["i"] == 2:
+        raise InputError(f"frame {item.key}: bad depth file (fix: re-export it)")
+    if item.data["i"] == 4:
+        raise ValueError("an unexpected bug")
+    return _run(ctx, item)
+
+
+ARRAYS = Stage(name="arrays", plan=_plan, run_item=_run)
+FAILING = Stage(name="failing", plan=_plan, run_item=_run_failing)

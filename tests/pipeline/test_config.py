@@ -1,0 +1,79 @@
+"""Configs: defaults, TOML round trip, overrides, and one clear error per kind of mistake."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from pipeline.config import (Config, ConfigError, build_config, dump_config, load_config, parse_override,
+                             reference_markdown)
+
+
+def test_defaults_are_valid_and_frozen():
+    cfg = build_config({})
+    assert cfg == Config()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.run.seed = 3  # type: ignore[misc]
+
+
+def test_dump_and_load_round_trip(tmp_path):
+    cfg = load_config(None, ["run.seed=11", "simulate.drops=3", "composite.mode=published"])
+    p = tmp_path / "c.toml"
+    p.write_text(dump_config(cfg))
+    assert load_config(p) == cfg
+
+
+def test_override_parses_toml_values():
+    assert parse_override("run.seed=5") == ("run", "seed", 5)
+    assert parse_override("export.formats=['bop']") == ("export", "formats", ["bop"])
+    assert parse_override("composite.mode=full") == ("composite", "mode", "full")
+
+
+@pytest.mark.parametrize("raw, words", [
+    ({"run": {"sed": 1}}, ["run.sed", "valid keys", "seed"]),
+    ({"nope": {}}, ["[nope]", "valid tables"]),
+    ({"run": {"seed": "x"}}, ["run.seed", "'x'", "integer"]),
+    ({"run": {"seed": 1.5}}, ["run.seed", "integer"]),
+    ({"run": {"seed": True}}, ["run.seed", "integer"]),
+    ({"simulate": {"drops": -1}}, ["simulate.drops", "-1", ">= 0"]),
+    ({"simulate": {"timestep": 0}}, ["simulate.timestep", "> 0"]),
+    ({"raster": {"visib_threshold": 1.5}}, ["raster.visib_threshold", "<= 1"]),
+    ({"composite": {"mode": "fancy"}}, ["composite.mode", "'fancy'", "'published'", "'full'"]),
+    ({"export": {"formats": ["bop", "voc"]}}, ["export.formats", "'voc'", "'coco'"]),
+    ({"scan": {"paths": ["/definitely/not/here"]}}, ["scan.paths", "/definitely/not/here", "does not exist"]),
+    ({"run": 3}, ["[run]", "table"]),
+])
+def test_bad_values_name_key_value_and_fix(raw, words):
+    with pytest.raises(ConfigError) as e:
+        build_config(raw)
+    for w in words:
+        assert w in str(e.value)
+
+
+def test_relative_paths_resolve_against_the_config_folder(tmp_path):
+    (tmp_path / "scans" / "a").mkdir(parents=True)
+    p = tmp_path / "c.toml"
+    p.write_text('[scan]\npaths = ["scans/a"]\n')
+    assert load_config(p).scan.paths == (str((tmp_path / "scans" / "a").resolve()),)
+
+
+def test_missing_and_malformed_files(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(tmp_path / "missing.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[run\nseed = 1\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(bad)
+    binary = tmp_path / "bin.toml"
+    binary.write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(ConfigError, match="UTF-8"):
+        load_config(binary)
+
+
+def test_reference_lists_every_key():
+    ref = reference_markdown()
+    for f in dataclasses.fields(Config):
+        assert f"[{f.name}]" in ref
+        for g in dataclasses.fields(getattr(Config(), f.name)):
+            assert f"`{g.name}`" in ref

@@ -1,0 +1,75 @@
+"""The stage contract: done markers, resume, failures, determinism across worker counts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pipeline.config import build_config
+from pipeline.runner import is_done, item_results, run_stage
+from tests.pipeline.stage_fixtures import ARRAYS, FAILING
+
+REF = "tests.pipeline.stage_fixtures:ARRAYS"
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_runs_every_item_and_writes_markers(tmp_path):
+    cfg = build_config({})
+    rep = run_stage(tmp_path, cfg, ARRAYS, stage_ref=REF)
+    assert (rep.total, rep.done, rep.skipped, rep.failed) == (6, 6, 0, 0)
+    assert all(is_done(tmp_path, "arrays", f"scene/f{i:03d}") for i in range(6))
+    assert len(item_results(tmp_path, "arrays")) == 6
+
+
+def test_finished_items_are_skipped_on_resume(tmp_path):
+    cfg = build_config({})
+    run_stage(tmp_path, cfg, ARRAYS, stage_ref=REF)
+    # Lose one item's output and marker, as if the run had been killed before finishing it.
+    (tmp_path / "arrays" / "scene" / "f003.npz").unlink()
+    (tmp_path / "arrays" / "_items" / "scene" / "f003.done.json").unlink()
+    before = (tmp_path / "arrays" / "scene" / "f001.npz").stat().st_mtime_ns
+    rep = run_stage(tmp_path, cfg, ARRAYS, stage_ref=REF)
+    assert (rep.done, rep.skipped) == (1, 5)
+    assert (tmp_path / "arrays" / "scene" / "f003.npz").is_file()
+    assert (tmp_path / "arrays" / "scene" / "f001.npz").stat().st_mtime_ns == before
+
+
+def test_same_seed_same_bytes_whatever_the_workers(tmp_path):
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    run_stage(a, build_config({"run": {"seed": 7}}), ARRAYS, stage_ref=REF)
+    run_stage(b, build_config({"run": {"seed": 7, "workers": 2}}), ARRAYS, stage_ref=REF)
+    run_stage(c, build_config({"run": {"seed": 8}}), ARRAYS, stage_ref=REF)
+    assert _files(a) == _files(b)
+    assert _files(a)["arrays/scene/f000.npz"] != _files(c)["arrays/scene/f000.npz"]
+
+
+def test_seed_zero_is_a_seed(tmp_path):
+    run_stage(tmp_path / "x", build_config({"run": {"seed": 0}}), ARRAYS, stage_ref=REF)
+    run_stage(tmp_path / "y", build_config({"run": {"seed": 0}}), ARRAYS, stage_ref=REF)
+    assert _files(tmp_path / "x") == _files(tmp_path / "y")
+
+
+def test_failures_are_recorded_and_others_finish(tmp_path):
+    ref = "tests.pipeline.stage_fixtures:FAILING"
+    rep = run_stage(tmp_path, build_config({}), FAILING, stage_ref=ref)
+    assert (rep.done, rep.failed) == (4, 2)
+    user = rep.failures["scene/f002"]
+    assert "bad depth file" in user and "Traceback" not in user
+    bug = rep.failures["scene/f004"]
+    assert "ValueError" in bug and "failed.json" in bug
+    assert (tmp_path / "failing" / "_items" / "scene" / "f004.failed.json").is_file()
+    # Failed items are retried on the next invocation; finished ones are not.
+    rep2 = run_stage(tmp_path, build_config({}), FAILING, stage_ref=ref)
+    assert (rep2.skipped, rep2.failed) == (4, 2)
+
+
+def test_duplicate_item_keys_are_a_bug(tmp_path, monkeypatch):
+    from pipeline.runner import Item, Stage
+
+    dup = Stage(name="dup", plan=lambda ctx: [Item("a"), Item("a")], run_item=lambda c, i: None)
+    with pytest.raises(RuntimeError, match="duplicate"):
+        run_stage(tmp_path, build_config({}), dup)
