@@ -144,6 +144,14 @@ class RasterConfig:
                                      "this share of the image", min=0.0, max=1.0)
     image_scale: float = option(1.0, "render at this multiple of the scan's resolution",
                                 min=0.0, min_exclusive=True)
+    poses: str = option("", "JSON file of chosen object poses to render instead of the simulate stage's "
+                        "drops (schema in pipeline/raster.py); empty = use simulate", path="file")
+    real_depth_fusion: bool = option(True, "let the real sensor depth occlude objects where it is valid and "
+                                     "nearer (thin parts missing from the scan mesh)")
+    fusion_tol_abs: float = option(0.02, "real depth must be nearer than the object by more than this "
+                                   "plus fusion_tol_rel x depth to occlude it, metres", min=0.0)
+    fusion_tol_rel: float = option(0.01, "depth-proportional part of the fusion tolerance, metres per metre",
+                                   min=0.0)
 
 
 @dataclass(frozen=True)
@@ -170,6 +178,9 @@ class ExportConfig:
     formats: tuple[str, ...] = option(("bop", "coco"), "dataset formats to write", choices=("bop", "coco"))
     image_format: str = option("jpg", "colour image files", choices=("jpg", "png"))
     chunk_size: int = option(1000, "images per BOP scene folder", min=1)
+    depth_scale: float = option(0.1, "BOP depth PNG unit: millimetres per stored uint16 value "
+                                "(0.1 = 0.1 mm steps, up to 6.55 m)", min=0.0, min_exclusive=True)
+    jpeg_quality: int = option(95, "JPEG quality of colour images (image_format = 'jpg')", min=1, max=100)
 
 
 @dataclass(frozen=True)
