@@ -1,0 +1,254 @@
+"""Collision detection: contact points between bodies, static planes and the room distance field.
+
+Every contact is a point on body ``a`` pushed along ``normal`` (pointing from ``b`` to ``a``) with a
+signed distance ``dist`` (negative = penetration). Contacts are *speculative*: pairs closer than the
+distance the bodies can travel in one step (plus ``Options.margin``) produce contacts with a positive
+distance, which the solver turns into "arrive, do not cross" constraints; this is what keeps fast bodies
+from tunnelling through thin surfaces (the CCD backstop in :mod:`pipeline.physics.ccd` catches the rest).
+
+* body - plane: hull vertices (sphere centres minus the radius) against each half-space;
+* body - room: hull vertices against the room's unsigned distance field minus the shell thickness
+  (scan surfaces are open, one-sided and paper thin); normal = gradient of the field;
+* body - body: hull vertices of one body against the face planes of the other, both ways (the signed
+  distance of a point to a convex polytope is the largest plane distance); spheres by centre distance.
+
+Per (body, other, side) only the ``Options.contacts_per_pair`` deepest points are kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.physics.integrate import quat_to_mat
+from pipeline.physics.types import KIND_SPHERE, Model, State
+
+
+@dataclass(frozen=True)
+class Contacts:
+    """Contact points (structure of arrays)."""
+
+    body_a: np.ndarray    # (C,) int32, body owning the contact point
+    body_b: np.ndarray    # (C,) int32, other body, -1 for the static world
+    pos: np.ndarray       # (C, 3) float64, m, world contact point (on body a's surface)
+    normal: np.ndarray    # (C, 3) float64, unit, world, from b to a
+    dist: np.ndarray      # (C,) float64, m, signed distance (< 0: penetration)
+    friction: np.ndarray  # (C,) float64, Coulomb coefficient of the pair
+    key: np.ndarray       # (C,) int64, persistent feature id (warm start)
+
+    @property
+    def count(self) -> int:
+        return int(self.body_a.shape[0])
+
+
+def empty_contacts() -> Contacts:
+    z = np.zeros(0)
+    return Contacts(np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros((0, 3)), np.zeros((0, 3)),
+                    z, z.copy(), np.zeros(0, np.int64))
+
+
+def world_vertices(model: Model, R: np.ndarray, pos: np.ndarray) -> np.ndarray:
+    """(B, V, 3) float64 hull vertices in the world for rotations (B,3,3) and com positions (B,3)."""
+    return np.einsum("bij,bvj->bvi", R, model.body_verts) + pos[:, None, :]
+
+
+def room_distance(model: Model, points: np.ndarray, *, gradient: bool = True
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Trilinear unsigned distance to the room surface and its gradient.
+
+    Parameters
+    ----------
+    points
+        (..., 3) float64 world points, m.
+
+    Returns
+    -------
+    udf : (...) float64, m; ``inf`` outside the grid
+    grad : (..., 3) float64 unit direction away from the surface (None when not asked)
+    """
+    shp = points.shape[:-1]
+    p = points.reshape(-1, 3)
+    g = (p - model.room_origin) / model.room_spacing
+    n = np.array(model.room_udf.shape)
+    inside = np.all((g >= 0) & (g <= n - 1), axis=1)
+    gi = np.clip(np.floor(g), 0, n - 2).astype(np.int64)
+    f = np.clip(g - gi, 0.0, 1.0)
+    u = model.room_udf
+    x0, y0, z0 = gi[:, 0], gi[:, 1], gi[:, 2]
+    c = np.empty((len(p), 2, 2, 2))
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                c[:, dx, dy, dz] = u[x0 + dx, y0 + dy, z0 + dz]
+    fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+    cx = c[:, 0] * (1 - fx)[:, None, None] + c[:, 1] * fx[:, None, None]      # (N, 2, 2) over y, z
+    cxy = cx[:, 0] * (1 - fy)[:, None] + cx[:, 1] * fy[:, None]               # (N, 2) over z
+    d = cxy[:, 0] * (1 - fz) + cxy[:, 1] * fz
+    d = np.where(inside, d, np.inf)
+    if not gradient:
+        return d.reshape(shp), None
+    gz = cxy[:, 1] - cxy[:, 0]
+    gy = (cx[:, 1] - cx[:, 0])
+    gy = gy[:, 0] * (1 - fz) + gy[:, 1] * fz
+    dxx = c[:, 1] - c[:, 0]                                                    # (N, 2, 2)
+    dxy = dxx[:, 0] * (1 - fy)[:, None] + dxx[:, 1] * fy[:, None]
+    gx = dxy[:, 0] * (1 - fz) + dxy[:, 1] * fz
+    grad = np.stack([gx, gy, gz], axis=1)
+    nrm = np.linalg.norm(grad, axis=1, keepdims=True)
+    grad = np.where(nrm > 1e-12, grad / np.maximum(nrm, 1e-300), np.array([0.0, 0.0, 1.0]))
+    return d.reshape(shp), grad.reshape(shp + (3,))
+
+
+def speculative_margin(model: Model, state: State) -> np.ndarray:
+    """(B,) float64, m: how far any point of each body can move this step, plus ``Options.margin``."""
+    dt = model.opt.timestep
+    g = float(np.linalg.norm(model.opt.gravity))
+    sp = (np.linalg.norm(state.vel, axis=1) + np.linalg.norm(state.angvel, axis=1) * model.body_bound
+          + g * dt) * dt
+    return np.where(state.asleep, 0.0, sp) + model.opt.margin
+
+
+def _keep_smallest(d: np.ndarray, k: int) -> np.ndarray:
+    """Indices (along the last axis) of the ``k`` smallest entries of ``d`` (..., V), unsorted."""
+    if d.shape[-1] <= k:
+        return np.broadcast_to(np.arange(d.shape[-1]), d.shape).copy()
+    return np.argpartition(d, k - 1, axis=-1)[..., :k]
+
+
+def collide(model: Model, state: State) -> Contacts:
+    """All contacts of the awake bodies (and between awake and sleeping ones) at ``state``.
+
+    Contacts between two sleeping bodies, or a sleeping body and the static world, are skipped.
+    """
+    B = model.nbody
+    if B == 0:
+        return empty_contacts()
+    k = model.opt.contacts_per_pair
+    R = quat_to_mat(state.quat)
+    Wv = world_vertices(model, R, state.pos)                        # (B, V, 3)
+    V = Wv.shape[1]
+    vmask = np.arange(V)[None, :] < model.body_nvert[:, None]     # (B, V)
+    rad = model.body_radius
+    spec = speculative_margin(model, state)
+    awake = ~state.asleep
+    P = len(model.plane)
+    n_other = B + P + 1
+    out = {k_: [] for k_ in ("a", "b", "pos", "n", "d", "key")}
+
+    def emit(a, b, pos, n, d, other, vidx):
+        out["a"].append(a.astype(np.int32))
+        out["b"].append(b.astype(np.int32))
+        out["pos"].append(pos)
+        out["n"].append(n)
+        out["d"].append(d)
+        out["key"].append((a.astype(np.int64) * n_other + other) * (2 * V + 1) + vidx)
+
+    aw = np.flatnonzero(awake)
+    if len(aw):
+        # --- static planes -----------------------------------------------------------------------
+        for p in range(P):
+            n = model.plane[p, :3]
+            d = Wv[aw] @ n - model.plane[p, 3] - rad[aw, None]            # (A, V)
+            d = np.where(vmask[aw], d, np.inf)
+            idx = _keep_smallest(d, k)
+            dk = np.take_along_axis(d, idx, 1)
+            sel = dk < spec[aw, None]
+            bi, ki = np.nonzero(sel)
+            vi = idx[bi, ki]
+            body = aw[bi]
+            pts = Wv[body, vi] - n * rad[body, None]
+            emit(body, np.full(len(body), -1), pts, np.broadcast_to(n, pts.shape).copy(),
+                 dk[bi, ki], B + p, vi)
+        # --- room distance field -------------------------------------------------------------------
+        if model.has_room:
+            udf, grad = room_distance(model, Wv[aw])
+            d = udf - model.room_thickness - rad[aw, None]
+            d = np.where(vmask[aw], d, np.inf)
+            idx = _keep_smallest(d, k)
+            dk = np.take_along_axis(d, idx, 1)
+            sel = dk < spec[aw, None]
+            bi, ki = np.nonzero(sel)
+            vi = idx[bi, ki]
+            body = aw[bi]
+            nrm = grad[bi, vi]
+            pts = Wv[body, vi] - nrm * rad[body, None]
+            emit(body, np.full(len(body), -1), pts, nrm, dk[bi, ki], B + P, vi)
+    # --- body pairs ------------------------------------------------------------------------------
+    if B > 1:
+        I, J = np.triu_indices(B)
+        off = I != J
+        I, J = I[off], J[off]
+        reach = model.body_bound[I] + model.body_bound[J] + spec[I] + spec[J]
+        close = np.linalg.norm(state.pos[I] - state.pos[J], axis=1) < reach
+        close &= awake[I] | awake[J]
+        I, J = I[close], J[close]
+        if len(I):
+            sph = (model.body_kind[I] == KIND_SPHERE) & (model.body_kind[J] == KIND_SPHERE)
+            # sphere - sphere
+            if np.any(sph):
+                a, b = I[sph], J[sph]
+                dv = state.pos[a] - state.pos[b]
+                dist = np.linalg.norm(dv, axis=1)
+                n = dv / np.maximum(dist, 1e-12)[:, None]
+                d = dist - rad[a] - rad[b]
+                s = d < spec[a] + spec[b]
+                a, b, n, d = a[s], b[s], n[s], d[s]
+                emit(a, b, state.pos[a] - n * rad[a, None], n, d, b, np.zeros(len(a), np.int64))
+            # sphere against a polyhedron: centre against the face planes
+            for A_, B_ in ((I[~sph], J[~sph]), (J[~sph], I[~sph])):
+                sel = (model.body_kind[A_] == KIND_SPHERE) & (model.body_kind[B_] != KIND_SPHERE)
+                A_, B_ = A_[sel], B_[sel]
+                if not len(A_):
+                    continue
+                nW = np.einsum("pij,pfj->pfi", R[B_], model.body_planes[B_, :, :3])
+                dW = model.body_planes[B_, :, 3] + np.einsum("pfi,pi->pf", nW, state.pos[B_])
+                sd = np.einsum("pi,pfi->pf", state.pos[A_], nW) - dW
+                f = np.argmax(sd, axis=1)
+                d = sd[np.arange(len(A_)), f] - rad[A_]
+                s = d < spec[A_] + spec[B_]
+                a, b, f, d = A_[s], B_[s], f[s], d[s]
+                n = nW[s, f] if len(a) else np.zeros((0, 3))
+                emit(a, b, state.pos[a] - n * rad[a, None], n, d, b, np.zeros(len(a), np.int64))
+            # polyhedron pairs: separating face axis of either body (SAT on face normals), then the
+            # vertices of each body near the other one become contacts along that axis
+            pp = (model.body_kind[I] != KIND_SPHERE) & (model.body_kind[J] != KIND_SPHERE)
+            A_, B_ = I[pp], J[pp]
+            if len(A_):
+                Q = len(A_)
+                qa = np.arange(Q)
+                nWB = np.einsum("pij,pfj->pfi", R[B_], model.body_planes[B_, :, :3])   # (Q, F, 3)
+                dWB = model.body_planes[B_, :, 3] + np.einsum("pfi,pi->pf", nWB, state.pos[B_])
+                nWA = np.einsum("pij,pfj->pfi", R[A_], model.body_planes[A_, :, :3])
+                dWA = model.body_planes[A_, :, 3] + np.einsum("pfi,pi->pf", nWA, state.pos[A_])
+                mA, mB = vmask[A_], vmask[B_]
+                sdAB = np.einsum("pvi,pfi->pvf", Wv[A_], nWB) - dWB[:, None, :]       # (Q, V, F)
+                sdBA = np.einsum("pvi,pfi->pvf", Wv[B_], nWA) - dWA[:, None, :]
+                sepB = np.where(mA[:, :, None], sdAB, np.inf).min(axis=1)              # (Q, F)
+                sepA = np.where(mB[:, :, None], sdBA, np.inf).min(axis=1)
+                fB, fA = np.argmax(sepB, axis=1), np.argmax(sepA, axis=1)
+                useB = sepB[qa, fB] >= sepA[qa, fA] - 1e-6
+                n = np.where(useB[:, None], nWB[qa, fB], -nWA[qa, fA])               # (Q, 3) B -> A
+                projA = np.einsum("pvi,pi->pv", Wv[A_], n)
+                projB = np.einsum("pvi,pi->pv", Wv[B_], n)
+                hA = np.where(mA, projA, np.inf).min(axis=1)
+                hB = np.where(mB, projB, -np.inf).max(axis=1)
+                reach = (spec[A_] + spec[B_])[:, None]
+                for side, (proj, near, mask, owner) in enumerate((
+                        (projA - hB[:, None], sdAB.max(axis=2), mA, A_),
+                        (hA[:, None] - projB, sdBA.max(axis=2), mB, B_))):
+                    d = np.where(mask & (near < reach), proj, np.inf)
+                    idx = _keep_smallest(d, k)
+                    dk = np.take_along_axis(d, idx, 1)
+                    qi, ki = np.nonzero(dk < reach)
+                    vi = idx[qi, ki]
+                    emit(A_[qi], B_[qi], Wv[owner[qi], vi], n[qi], dk[qi, ki], B_[qi], vi + side * V)
+    if not out["a"]:
+        return empty_contacts()
+    a = np.concatenate(out["a"])
+    b = np.concatenate(out["b"])
+    fa = model.body_friction[a]
+    fb = np.where(b >= 0, model.body_friction[np.maximum(b, 0)], fa)
+    return Contacts(body_a=a, body_b=b, pos=np.concatenate(out["pos"]), normal=np.concatenate(out["n"]),
+                    dist=np.concatenate(out["d"]), friction=np.maximum(fa, fb),
+                    key=np.concatenate(out["key"]))

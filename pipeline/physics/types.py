@@ -1,0 +1,351 @@
+"""Frozen physics model and state (structure of arrays), built and validated once at the boundary.
+
+The engine follows MuJoCo's split: a static :class:`Model` (bodies, collision geometry, the static
+world, options) and a dynamic :class:`State` (poses, velocities, sleep bookkeeping, solver warm start).
+``step(model, state) -> State`` never validates; :func:`build_model` does, once.
+
+Conventions: metres, kilograms, seconds, world frame of the scan. A body's frame is its centre of mass
+with its principal axes; ``body_R_m2b``/``body_t_m2b`` map the object model's own frame into it, so a
+model-to-world pose is ``R_b2w @ R_m2b`` and ``R_b2w @ t_m2b + pos``. Quaternions are (w, x, y, z),
+body-to-world.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from pipeline.errors import InputError
+
+KIND_POLY = 0    # convex polyhedron: hull vertices + face planes
+KIND_SPHERE = 1  # sphere: one point (the centre) plus a radius
+
+PAD_PLANE_OFFSET = 1e9  # offset of padding face planes: n = 0, so n.x - d = -1e9 never wins a max
+
+
+@dataclass(frozen=True)
+class Options:
+    """Simulation options (MuJoCo names where one exists)."""
+
+    timestep: float = 0.02           # s
+    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)  # m/s^2, world frame
+    friction: float = 0.5            # Coulomb coefficient used when a body gives none
+    solref: tuple[float, float] = (0.04, 1.0)   # (time constant s, damping ratio); tc >= 2 dt enforced
+    solimp: tuple[float, float, float] = (0.98, 0.99, 0.001)  # (dmin, dmax, width m) impedance
+    impratio: float = 10.0           # friction rows are impratio x harder than normal rows
+    iterations: int = 60             # solver iterations per step (upper bound)
+    tolerance: float = 1e-7          # solver stops when the impulse change is below this (N s)
+    margin: float = 0.005            # contact detection distance beyond speculative margins, m
+    contacts_per_pair: int = 6       # contact points kept per (body, body or static) pair and side
+    sleep_linear: float = 0.01       # m/s below which a body may fall asleep
+    sleep_angular: float = 0.1       # rad/s below which a body may fall asleep
+    sleep_time: float = 0.4          # s of continuous rest before a body sleeps
+    wake_speed: float = 0.05         # m/s: a body moving faster wakes sleeping bodies it touches
+    ccd: bool = True                 # conservative advancement against the room distance field
+
+
+@dataclass(frozen=True)
+class Model:
+    """Static description of a scene: bodies, their geometry, the static world and options."""
+
+    body_mass: np.ndarray        # (B,) float64, kg
+    body_inertia: np.ndarray     # (B, 3) float64, principal moments about the com, kg m^2
+    body_kind: np.ndarray        # (B,) int32, KIND_POLY | KIND_SPHERE
+    body_radius: np.ndarray      # (B,) float64, m: sphere radius (0 for polyhedra)
+    body_friction: np.ndarray    # (B,) float64, Coulomb coefficient
+    body_verts: np.ndarray       # (B, V, 3) float64, m, body frame; hull vertices (padded by repetition)
+    body_nvert: np.ndarray       # (B,) int32, valid entries of body_verts
+    body_planes: np.ndarray      # (B, F, 4) float64: outward unit normal n and offset d, n.x <= d inside
+    body_bound: np.ndarray       # (B,) float64, m, radius of a sphere about the com holding the body
+    body_R_m2b: np.ndarray       # (B, 3, 3) float64, object-model frame -> body frame rotation
+    body_t_m2b: np.ndarray       # (B, 3) float64, m, object-model frame -> body frame translation
+    plane: np.ndarray            # (P, 4) float64, static half-spaces n.x >= d (n unit, pointing out of them)
+    room_origin: np.ndarray      # (3,) float64, m, world position of udf[0, 0, 0]
+    room_spacing: float          # m, grid spacing of the room distance field (0 = no room)
+    room_udf: np.ndarray         # (nx, ny, nz) float32, m, unsigned distance to the room surface
+    room_thickness: float        # m, the surface counts as a shell of this half-thickness
+    opt: Options = field(default_factory=Options)
+
+    @property
+    def nbody(self) -> int:
+        return int(self.body_mass.shape[0])
+
+    @property
+    def has_room(self) -> bool:
+        return self.room_spacing > 0 and self.room_udf.size > 0
+
+    @property
+    def room_upper(self) -> np.ndarray:
+        """(3,) float64, m, world position of the last grid node."""
+        return self.room_origin + self.room_spacing * (np.array(self.room_udf.shape, float) - 1)
+
+
+@dataclass(frozen=True)
+class State:
+    """Dynamic state of every body (structure of arrays)."""
+
+    time: float                  # s
+    pos: np.ndarray              # (B, 3) float64, m, com in world
+    quat: np.ndarray             # (B, 4) float64, (w, x, y, z) body-to-world, unit
+    vel: np.ndarray              # (B, 3) float64, m/s, com velocity in world
+    angvel: np.ndarray           # (B, 3) float64, rad/s, angular velocity in world
+    asleep: np.ndarray           # (B,) bool, body is not integrated
+    rest_time: np.ndarray        # (B,) float64, s, time spent below the sleep thresholds
+    ws_key: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (K,) contact feature keys
+    ws_impulse: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))   # (K, 3) N s, last impulses
+    max_penetration: float = 0.0  # m, deepest contact penetration at the last step
+
+    def replace(self, **kw) -> "State":
+        return replace(self, **kw)
+
+
+@dataclass(frozen=True)
+class Body:
+    """One body's description as given by a caller (validated by :func:`build_model`)."""
+
+    vertices: np.ndarray         # (V, 3) float64, m, object-model frame; hull vertices (or any points)
+    mass: float                  # kg
+    com: np.ndarray              # (3,) float64, m, object-model frame
+    inertia: np.ndarray          # (3, 3) float64, kg m^2, about the com, object-model frame axes
+    friction: float = -1.0       # < 0: Options.friction
+    radius: float = 0.0          # > 0 makes a sphere of this radius centred at com (vertices ignored)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Geometry helpers
+# ---------------------------------------------------------------------------------------------------
+
+def hull_planes(points: np.ndarray, *, max_vertices: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """Convex hull of ``points`` reduced to at most ``max_vertices`` extreme vertices.
+
+    Parameters
+    ----------
+    points
+        (N, 3) float64, m.
+    max_vertices
+        Largest number of hull vertices kept (farthest-point subset of the hull's vertices).
+
+    Returns
+    -------
+    verts : (V, 3) float64 hull vertices
+    planes : (F, 4) float64 outward unit normals and offsets (n.x <= d inside), coplanar faces merged
+    """
+    from scipy.spatial import ConvexHull
+
+    pts = np.asarray(points, float)
+    hull = ConvexHull(pts)
+    verts = pts[hull.vertices]
+    if len(verts) > max_vertices:
+        # farthest-point sampling keeps the extreme shape; start from the point farthest from the mean
+        chosen = [int(np.argmax(np.linalg.norm(verts - verts.mean(0), axis=1)))]
+        d = np.linalg.norm(verts - verts[chosen[0]], axis=1)
+        for _ in range(max_vertices - 1):
+            i = int(np.argmax(d))
+            chosen.append(i)
+            d = np.minimum(d, np.linalg.norm(verts - verts[i], axis=1))
+        verts = verts[np.array(chosen)]
+        hull = ConvexHull(verts)
+        verts = verts[hull.vertices]
+        hull = ConvexHull(verts)
+    eq = hull.equations  # (F, 4): n.x + c <= 0 inside
+    planes = np.concatenate([eq[:, :3], -eq[:, 3:4]], axis=1)
+    # merge coplanar triangles (same plane up to rounding)
+    keyed = np.round(planes / np.array([1e-6, 1e-6, 1e-6, 1e-7]))
+    _, idx = np.unique(keyed, axis=0, return_index=True)
+    return verts, planes[np.sort(idx)]
+
+
+def box_body(half_extents, mass: float, *, friction: float = -1.0) -> Body:
+    """A solid box centred at the origin with the given half extents (m)."""
+    h = np.asarray(half_extents, float)
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float) * h
+    ext = 2 * h
+    inertia = mass / 12.0 * np.diag([ext[1] ** 2 + ext[2] ** 2, ext[0] ** 2 + ext[2] ** 2,
+                                     ext[0] ** 2 + ext[1] ** 2])
+    return Body(vertices=corners, mass=mass, com=np.zeros(3), inertia=inertia, friction=friction)
+
+
+def sphere_body(radius: float, mass: float, *, friction: float = -1.0) -> Body:
+    """A solid sphere centred at the origin."""
+    return Body(vertices=np.zeros((1, 3)), mass=mass, com=np.zeros(3),
+                inertia=np.eye(3) * 0.4 * mass * radius ** 2, friction=friction, radius=radius)
+
+
+def mesh_body(vertices: np.ndarray, faces: np.ndarray, *, density: float = 500.0,
+              friction: float = -1.0) -> Body:
+    """A body with the mass properties of the convex hull of a mesh (used until meshprep's solids).
+
+    Parameters
+    ----------
+    vertices
+        (V, 3) float64, m.
+    faces
+        (T, 3) int; only used for nothing but shape checks (the hull is what collides).
+    density
+        kg/m^3.
+    """
+    import trimesh
+
+    hull = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces)).convex_hull
+    mp = hull.mass_properties
+    mass = float(mp["volume"]) * density
+    return Body(vertices=np.asarray(hull.vertices, float), mass=mass, com=np.asarray(mp["center_mass"]),
+                inertia=np.asarray(mp["inertia"]) * density, friction=friction)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Validation at the boundary
+# ---------------------------------------------------------------------------------------------------
+
+def _check_finite(name: str, a: np.ndarray) -> None:
+    if not np.all(np.isfinite(a)):
+        raise InputError(f"physics model: {name} has non-finite values; fix the object's mesh/solid")
+
+
+def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
+                room: dict | None = None, room_thickness: float = 0.01,
+                opt: Options | None = None, max_vertices: int = 48) -> Model:
+    """Validate bodies and the static world and build a frozen :class:`Model`.
+
+    Parameters
+    ----------
+    bodies
+        Body descriptions in their object-model frames.
+    planes
+        (P, 4) static half-spaces ``n.x >= d`` (n need not be unit); None = none.
+    room
+        Room proxy with ``origin`` (3,), ``spacing`` float and ``udf`` (nx, ny, nz), or None.
+    room_thickness
+        Half-thickness of the room surface shell, m (scan surfaces have no inside).
+    opt
+        Options; defaults when None.
+    max_vertices
+        Hull vertices kept per body.
+    """
+    opt = opt or Options()
+    if opt.timestep <= 0 or not math.isfinite(opt.timestep):
+        raise InputError(f"physics options: timestep = {opt.timestep}; must be a positive number of seconds")
+    B = len(bodies)
+    masses, inertias, kinds, radii, frics, verts, plns, Rs, ts, bounds = ([] for _ in range(10))
+    for i, b in enumerate(bodies):
+        m = float(b.mass)
+        if not (m > 0 and math.isfinite(m)):
+            raise InputError(f"physics model: body {i} has mass {m}; give a positive mass (kg)")
+        I = np.asarray(b.inertia, float).reshape(3, 3)
+        com = np.asarray(b.com, float).reshape(3)
+        _check_finite(f"body {i} inertia", I)
+        _check_finite(f"body {i} com", com)
+        I = 0.5 * (I + I.T)
+        w, V = np.linalg.eigh(I)
+        if w[0] <= 0:
+            raise InputError(f"physics model: body {i} inertia is not positive definite "
+                             f"(eigenvalues {w}); recompute the solid's mass properties")
+        if w[0] + w[1] < w[2] * (1 - 1e-6):
+            raise InputError(f"physics model: body {i} inertia violates the triangle inequality "
+                             f"(principal moments {w}); it cannot belong to a real body")
+        if np.linalg.det(V) < 0:
+            V[:, 2] *= -1
+        R_m2b = V.T
+        t_m2b = -R_m2b @ com
+        fr = opt.friction if b.friction < 0 else float(b.friction)
+        if b.radius > 0:
+            kinds.append(KIND_SPHERE)
+            radii.append(float(b.radius))
+            vb = np.zeros((1, 3))
+            pb = np.zeros((0, 4))
+            bound = float(b.radius)
+        else:
+            pts = np.asarray(b.vertices, float).reshape(-1, 3)
+            _check_finite(f"body {i} vertices", pts)
+            if len(pts) < 4:
+                raise InputError(f"physics model: body {i} has {len(pts)} vertices; a solid needs >= 4")
+            pts_b = pts @ R_m2b.T + t_m2b
+            try:
+                vb, pb = hull_planes(pts_b, max_vertices=max_vertices)
+            except Exception as e:  # qhull errors: flat or degenerate point sets
+                raise InputError(f"physics model: body {i} vertices span no volume ({e}); "
+                                 f"a collider needs a 3D hull") from None
+            kinds.append(KIND_POLY)
+            radii.append(0.0)
+            bound = float(np.linalg.norm(vb, axis=1).max())
+        masses.append(m)
+        inertias.append(w)
+        frics.append(fr)
+        verts.append(vb)
+        plns.append(pb)
+        Rs.append(R_m2b)
+        ts.append(t_m2b)
+        bounds.append(bound)
+    V = max([len(v) for v in verts], default=1)
+    F = max([len(p) for p in plns], default=1) or 1
+    body_verts = np.zeros((B, V, 3))
+    body_planes = np.zeros((B, F, 4))
+    body_planes[:, :, 3] = PAD_PLANE_OFFSET
+    for i in range(B):
+        n = len(verts[i])
+        body_verts[i, :n] = verts[i]
+        body_verts[i, n:] = verts[i][0]
+        body_planes[i, :len(plns[i])] = plns[i]
+    pl = np.zeros((0, 4)) if planes is None else np.asarray(planes, float).reshape(-1, 4)
+    _check_finite("planes", pl)
+    nn = np.linalg.norm(pl[:, :3], axis=1)
+    if np.any(nn <= 0):
+        raise InputError("physics model: a static plane has a zero normal")
+    pl = pl / nn[:, None]
+    if room is not None:
+        udf = np.asarray(room["udf"], np.float32)
+        spacing = float(room["spacing"])
+        origin = np.asarray(room["origin"], float).reshape(3)
+        if udf.ndim != 3 or min(udf.shape) < 2:
+            raise InputError(f"room proxy: udf has shape {udf.shape}; expected a 3D grid >= 2 per axis")
+        if not spacing > 0:
+            raise InputError(f"room proxy: spacing = {spacing}; must be positive metres")
+        _check_finite("room udf", udf)
+    else:
+        udf, spacing, origin = np.zeros((0, 0, 0), np.float32), 0.0, np.zeros(3)
+    return Model(body_mass=np.array(masses, float).reshape(B), body_inertia=np.array(inertias).reshape(B, 3),
+                 body_kind=np.array(kinds, np.int32).reshape(B), body_radius=np.array(radii).reshape(B),
+                 body_friction=np.array(frics).reshape(B), body_verts=body_verts,
+                 body_nvert=np.array([len(v) for v in verts], np.int32).reshape(B), body_planes=body_planes,
+                 body_bound=np.array(bounds).reshape(B), body_R_m2b=np.array(Rs).reshape(B, 3, 3),
+                 body_t_m2b=np.array(ts).reshape(B, 3), plane=pl, room_origin=origin,
+                 room_spacing=spacing, room_udf=udf, room_thickness=float(room_thickness), opt=opt)
+
+
+def make_state(model: Model, R_m2w: np.ndarray, t_m2w: np.ndarray, *, vel: np.ndarray | None = None,
+               angvel: np.ndarray | None = None) -> State:
+    """Initial state from object-model poses in the world (model frame, not com frame).
+
+    Parameters
+    ----------
+    R_m2w
+        (B, 3, 3) float64 model-to-world rotations.
+    t_m2w
+        (B, 3) float64, m, model-to-world translations.
+    vel, angvel
+        (B, 3) float64 initial com velocity (m/s) and angular velocity (rad/s, world); zeros if None.
+    """
+    from pipeline.physics.integrate import mat_to_quat
+
+    B = model.nbody
+    R_m2w = np.asarray(R_m2w, float).reshape(B, 3, 3)
+    t_m2w = np.asarray(t_m2w, float).reshape(B, 3)
+    R_b2w = R_m2w @ np.transpose(model.body_R_m2b, (0, 2, 1))
+    pos = t_m2w - np.einsum("bij,bj->bi", R_b2w, model.body_t_m2b)
+    z = np.zeros((B, 3))
+    return State(time=0.0, pos=pos, quat=mat_to_quat(R_b2w),
+                 vel=z.copy() if vel is None else np.asarray(vel, float).reshape(B, 3),
+                 angvel=z.copy() if angvel is None else np.asarray(angvel, float).reshape(B, 3),
+                 asleep=np.zeros(B, bool), rest_time=np.zeros(B))
+
+
+def model_poses(model: Model, state: State) -> tuple[np.ndarray, np.ndarray]:
+    """Object-model-to-world poses of every body: ``(R_m2w (B,3,3), t_m2w (B,3))``."""
+    from pipeline.physics.integrate import quat_to_mat
+
+    R_b2w = quat_to_mat(state.quat)
+    R_m2w = R_b2w @ model.body_R_m2b
+    t_m2w = np.einsum("bij,bj->bi", R_b2w, model.body_t_m2b) + state.pos
+    return R_m2w, t_m2w
