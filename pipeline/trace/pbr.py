@@ -1,0 +1,405 @@
+"""Wavefront path integrator for object pixels: primary rays, AO, PBR with NEE + MIS, adaptive spp.
+
+Every step works on a batch of rays (structure of arrays) that carry the index of the pixel sample
+they belong to (pbrt-v4's wavefront design, ``pixelIndex``); there is no Python loop over rays.
+
+Per pass, each active pixel gets ``spp_batch`` jittered primary rays. A primary ray that hits an object
+starts a path (and ``ao_samples`` AO rays); one that hits the room first, or nothing, contributes 0 and
+lowers the pixel's coverage. Paths bounce between objects (and, in the published mode, off the room)
+up to ``max_depth`` scattering events with Russian roulette from ``rr_depth`` on. After ``spp_min``
+samples a pixel stops once the standard error of its mean luminance is below ``noise_target`` times
+its mean (with a floor for dark pixels), or at ``spp``.
+
+Output radiance is linear and premultiplied by coverage (a half-covered edge pixel holds half the
+object's radiance), ready for ``out = pbr + (1 - coverage) * background``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.trace import bsdf
+from pipeline.trace.intersect import Hits, offset_origins
+from pipeline.trace.lights import LUMINANCE, sample_area_lights
+from pipeline.trace.sampling import cosine_hemisphere, power_heuristic, to_local, to_world
+from pipeline.trace.scene import TraceScene
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera, OpenCV axes (x right, y down, z forward); pixel centres at integers."""
+
+    K: np.ndarray       # (3, 3) float64 intrinsics, pixels
+    T_c2w: np.ndarray   # (4, 4) float64 camera-to-world, metres
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Quality knobs of :func:`render` (the stage fills them from TraceConfig)."""
+
+    spp: int = 16                 # samples per pixel, upper bound
+    spp_min: int = 4              # samples before the adaptive stop may end a pixel
+    spp_batch: int = 4            # samples per pixel per pass
+    noise_target: float = 0.02    # stop when std error of the mean < this x mean luminance
+    max_depth: int = 4            # scattering events per path
+    rr_depth: int = 2             # Russian roulette from this scattering event on
+    ao_samples: int = 1           # AO rays per primary object hit (0 = no AO pass)
+    ao_distance: float = 0.3      # metres, AO occluders farther than this do not count
+    ray_eps: float = 1e-4         # metres, origin offset off surfaces
+
+
+@dataclass(frozen=True)
+class FrameBuffers:
+    """What :func:`render` returns; (H, W) image arrays, zero (ao: one) outside traced pixels."""
+
+    pbr: np.ndarray        # (H, W, 3) float32 linear radiance, premultiplied by coverage
+    ao: np.ndarray         # (H, W) float32 in [0, 1], mean over object-hit samples; 1 elsewhere
+    coverage: np.ndarray   # (H, W) float32 in [0, 1], share of samples that hit an object first
+    albedo: np.ndarray     # (H, W, 3) float32 linear base colour, premultiplied by coverage
+    normal: np.ndarray     # (H, W, 3) float32 shading normal, camera frame, premultiplied by coverage
+    spp: np.ndarray        # (H, W) int32 samples taken per pixel
+    rays: int              # rays cast in total (all queries)
+
+
+@dataclass(frozen=True)
+class Surface:
+    """Hit points of a batch of rays (structure of arrays)."""
+
+    p: np.ndarray          # (R, 3) float32 position
+    ng: np.ndarray         # (R, 3) float32 geometric normal, facing the incoming ray
+    ns: np.ndarray         # (R, 3) float32 shading normal, same side as ng and the viewer
+    inst: np.ndarray       # (R,) int32, 0 room, k + 1 object instance k
+    prim: np.ndarray       # (R,) int32 triangle
+    albedo: np.ndarray     # (R, 3) float32 linear base colour
+    emission: np.ndarray   # (R, 3) float32 linear radiance
+    t: np.ndarray          # (R,) float32 ray distance
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-20)
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("ij,ij->i", a, b)
+
+
+def interact(scene: TraceScene, hits: Hits, dirs: np.ndarray) -> Surface:
+    """Surface data at the hits of rays ``dirs (R, 3)``; every ray must have hit."""
+    prim = hits.prim
+    f = scene.faces[prim]
+    u = hits.u[:, None]
+    v = hits.v[:, None]
+    w = 1.0 - u - v
+    V = scene.vertices
+    p0, p1, p2 = V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]
+    p = (w * p0 + u * p1 + v * p2).astype(np.float32)
+    ng = _unit(np.cross(p1 - p0, p2 - p0))
+    ng = np.where((_dot(ng, dirs) > 0)[:, None], -ng, ng).astype(np.float32)
+    N = scene.normals
+    ns = _unit(w * N[f[:, 0]] + u * N[f[:, 1]] + v * N[f[:, 2]])
+    ns = np.where((_dot(ns, ng) < 0)[:, None], -ns, ns)
+    # a shading normal that faces away from the viewer would make the BSDF zero: use the true one
+    ns = np.where((_dot(ns, -dirs) <= 1e-4)[:, None], ng, ns).astype(np.float32)
+    A = scene.albedo
+    alb = (w * A[f[:, 0]] + u * A[f[:, 1]] + v * A[f[:, 2]]).astype(np.float32)
+    inst = scene.tri_inst[prim]
+    for k, img in zip(scene.textures.inst, scene.textures.images):
+        sel = np.flatnonzero(inst == k)
+        if sel.size == 0:
+            continue
+        T = scene.uv
+        fs = f[sel]
+        uv = w[sel] * T[fs[:, 0]] + u[sel] * T[fs[:, 1]] + v[sel] * T[fs[:, 2]]
+        h, wd = img.shape[:2]
+        col = np.clip(((uv[:, 0] % 1.0) * wd).astype(np.int64), 0, wd - 1)
+        row = np.clip(((1.0 - uv[:, 1] % 1.0) * h).astype(np.int64), 0, h - 1)
+        alb[sel] = alb[sel] * img[row, col]
+    E = scene.emission
+    em = (w * E[f[:, 0]] + u * E[f[:, 1]] + v * E[f[:, 2]]).astype(np.float32)
+    return Surface(p=p, ng=ng, ns=ns, inst=inst, prim=prim, albedo=alb, emission=em, t=hits.t)
+
+
+def material(scene: TraceScene, s: Surface) -> bsdf.Material:
+    """The BSDF parameters at surface points (room points: Lambert with their albedo)."""
+    return bsdf.Material(base_color=s.albedo.astype(np.float64), metallic=scene.metallic[s.inst].astype(np.float64),
+                         roughness=scene.roughness[s.inst].astype(np.float64),
+                         specular=scene.specular[s.inst].astype(np.float64))
+
+
+def take(s: Surface, idx: np.ndarray) -> Surface:
+    return Surface(*(getattr(s, k)[idx] for k in ("p", "ng", "ns", "inst", "prim", "albedo", "emission", "t")))
+
+
+def primary_rays(camera: Camera, pixels: np.ndarray, jitter: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """World-space rays through flat pixel indices ``pixels (R,)`` at offsets ``jitter (R, 2)`` in [0, 1).
+
+    The ray goes through image point ``(x + jx - 0.5, y + jy - 0.5)``: pixel ``(x, y)`` covers the unit
+    square centred on its integer coordinates (OpenCV convention).
+    """
+    K = camera.K
+    x = (pixels % camera.width).astype(np.float64) + jitter[:, 0] - 0.5
+    y = (pixels // camera.width).astype(np.float64) + jitter[:, 1] - 0.5
+    d = np.stack([(x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1], np.ones_like(x)], axis=1)
+    d = _unit(d) @ camera.T_c2w[:3, :3].T
+    o = np.broadcast_to(camera.T_c2w[:3, 3], d.shape)
+    return o.astype(np.float32), d.astype(np.float32)
+
+
+class _Counter:
+    """Counts rays cast (for reports and the benchmark); a local object, not module state."""
+
+    def __init__(self) -> None:
+        self.rays = 0
+
+
+def _scatter(scene: TraceScene, s: Surface, wo: np.ndarray, beta: np.ndarray, rng: np.random.Generator,
+             eps: float, counter: _Counter) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Next-event estimation at surfaces ``s`` and a BSDF-sampled continuation.
+
+    Returns
+    -------
+    L_direct : (R, 3) radiance reaching the path start through the explicit lights, already x beta
+    wi : (R, 3) sampled world directions
+    weight : (R, 3) ``f cos / pdf`` (0 where the sample is invalid)
+    pdf : (R,) solid-angle pdf of ``wi`` (for MIS on emitters hit next)
+    """
+    n = s.p.shape[0]
+    mat = material(scene, s)
+    wo_l = to_local(wo.astype(np.float64), s.ns.astype(np.float64))
+    L = np.zeros((n, 3))
+    al = scene.area_lights
+    if al.count and n:
+        u = rng.random((3, n))
+        tri, b1, b2, pA = sample_area_lights(al, scene.vertices, scene.faces, u[0], u[1], u[2])
+        f = scene.faces[tri]
+        V = scene.vertices.astype(np.float64)
+        q0, q1, q2 = V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]
+        b0 = (1.0 - b1 - b2)[:, None]
+        lp = b0 * q0 + b1[:, None] * q1 + b2[:, None] * q2
+        ln = _unit(np.cross(q1 - q0, q2 - q0))
+        Le = b0 * scene.emission[f[:, 0]] + b1[:, None] * scene.emission[f[:, 1]] + b2[:, None] * scene.emission[f[:, 2]]
+        dvec = lp - s.p
+        dist = np.linalg.norm(dvec, axis=1)
+        wl = dvec / np.maximum(dist, 1e-12)[:, None]
+        cos_l = np.abs(_dot(wl, ln))
+        pdf_sa = pA * dist * dist / np.maximum(cos_l, 1e-12)
+        wl_l = to_local(wl, s.ns.astype(np.float64))
+        fc = bsdf.eval_f_cos(wo_l, wl_l, mat)
+        ok = (_dot(wl, s.ng) > 0) & (cos_l > 1e-6) & (fc.max(axis=1) > 0)
+        idx = np.flatnonzero(ok)
+        if idx.size:
+            org = offset_origins(s.p[idx], s.ng[idx], wl[idx].astype(np.float32), eps)
+            occ = scene.intersector.occluded(org, wl[idx], (dist[idx] - 2 * eps).astype(np.float32))
+            counter.rays += idx.size
+            vis = idx[~occ]
+            w = power_heuristic(pdf_sa[vis], bsdf.pdf(wo_l[vis], wl_l[vis], mat.take(vis)))
+            L[vis] += beta[vis] * fc[vis] * Le[vis] * (w / pdf_sa[vis])[:, None]
+    pl = scene.point_lights
+    for k in range(pl.count):
+        dvec = pl.position[k] - s.p
+        dist = np.linalg.norm(dvec, axis=1)
+        wl = dvec / np.maximum(dist, 1e-12)[:, None]
+        fc = bsdf.eval_f_cos(wo_l, to_local(wl, s.ns.astype(np.float64)), mat)
+        idx = np.flatnonzero((_dot(wl, s.ng) > 0) & (fc.max(axis=1) > 0))
+        if idx.size:
+            org = offset_origins(s.p[idx], s.ng[idx], wl[idx].astype(np.float32), eps)
+            occ = scene.intersector.occluded(org, wl[idx], (dist[idx] - 2 * eps).astype(np.float32))
+            counter.rays += idx.size
+            vis = idx[~occ]
+            L[vis] += beta[vis] * fc[vis] * (pl.intensity[k] / (dist[vis] ** 2)[:, None])
+    u = rng.random((3, n))
+    wi_l, fc, pdf = bsdf.sample(wo_l, mat, u[0], u[1], u[2])
+    wi = to_world(wi_l, s.ns.astype(np.float64))
+    ok = (pdf > 0) & (_dot(wi, s.ng) > 0) & (wi_l[:, 2] > 0)
+    weight = np.where(ok[:, None], fc / np.where(ok, pdf, 1.0)[:, None], 0.0)
+    return L, wi, weight, pdf
+
+
+def trace_samples(scene: TraceScene, camera: Camera, pixels: np.ndarray, settings: RenderSettings,
+                  rng: np.random.Generator, counter: _Counter | None = None) -> dict[str, np.ndarray]:
+    """Trace one camera sample per entry of ``pixels (R,)`` (flat pixel indices; repeats allowed).
+
+    Returns a dict of per-sample arrays: ``L (R, 3)`` radiance (0 unless an object was hit first),
+    ``covered (R,)`` bool, ``ao (R,)`` (1 where not covered), ``albedo (R, 3)``, ``normal (R, 3)``
+    (world frame).
+    """
+    counter = counter or _Counter()
+    n = pixels.shape[0]
+    eps = settings.ray_eps
+    o, d = primary_rays(camera, pixels, rng.random((n, 2)))
+    hits = scene.intersector.intersect(o, d)
+    counter.rays += n
+    inst = np.where(hits.hit, scene.tri_inst[np.maximum(hits.prim, 0)], -1)
+    covered = inst >= 1
+    out = {"L": np.zeros((n, 3)), "covered": covered, "ao": np.ones(n),
+           "albedo": np.zeros((n, 3), np.float32), "normal": np.zeros((n, 3), np.float32)}
+    idx = np.flatnonzero(covered)
+    if idx.size == 0:
+        return out
+    hsub = Hits(t=hits.t[idx], prim=hits.prim[idx], u=hits.u[idx], v=hits.v[idx])
+    s = interact(scene, hsub, d[idx])
+    out["albedo"][idx] = s.albedo
+    out["normal"][idx] = s.ns
+    if settings.ao_samples > 0:
+        out["ao"][idx] = ambient_occlusion(scene.intersector, s.p, s.ng, s.ns, rng, samples=settings.ao_samples,
+                                           max_distance=settings.ao_distance, eps=eps, counter=counter)
+    L = out["L"]
+    beta = np.ones((idx.size, 3))
+    wo = -d[idx]
+    al = scene.area_lights
+    for depth in range(settings.max_depth):
+        Ld, wi, weight, pdf = _scatter(scene, s, wo, beta, rng, eps, counter)
+        _add_rows(L, idx, Ld)
+        beta = beta * weight
+        alive = beta.max(axis=1) > 0
+        if depth + 1 >= settings.rr_depth:
+            q = np.clip(beta.max(axis=1), 0.05, 1.0)
+            alive &= rng.random(idx.size) < q
+            beta = beta / q[:, None]
+        k = np.flatnonzero(alive)
+        if k.size == 0:
+            break
+        idx, beta, pdf = idx[k], beta[k], pdf[k]
+        wi = wi[k].astype(np.float32)
+        org = offset_origins(s.p[k], s.ng[k], wi, eps)
+        h = scene.intersector.intersect(org, wi)
+        counter.rays += k.size
+        miss = ~h.hit
+        if miss.any():
+            _add_rows(L, idx[miss], beta[miss] * scene.env_radiance)
+        hk = np.flatnonzero(h.hit)
+        if hk.size == 0:
+            break
+        idx, beta, pdf, wi = idx[hk], beta[hk], pdf[hk], wi[hk]
+        s = interact(scene, Hits(t=h.t[hk], prim=h.prim[hk], u=h.u[hk], v=h.v[hk]), wi)
+        emits = np.flatnonzero(s.emission.max(axis=1) > 0)
+        if emits.size:
+            w = np.ones(emits.size)
+            if al.count:
+                pt = al.prob_of_tri[s.prim[emits]]
+                cos_l = np.abs(_dot(s.ng[emits], wi[emits]))
+                pdf_l = pt * s.t[emits].astype(np.float64) ** 2 / np.maximum(cos_l, 1e-12)
+                w = np.where(pt > 0, power_heuristic(pdf[emits], pdf_l), 1.0)
+            _add_rows(L, idx[emits], beta[emits] * s.emission[emits] * w[:, None])
+        scat = np.flatnonzero((s.inst >= 1) | (s.albedo.max(axis=1) > 0))
+        if scat.size == 0:
+            break
+        idx, beta, wo = idx[scat], beta[scat], -wi[scat]
+        s = take(s, scat)
+    return out
+
+
+def _add_rows(acc: np.ndarray, rows: np.ndarray, vals: np.ndarray) -> None:
+    """``acc[rows] += vals`` with repeated rows summed (bincount per channel, faster than add.at)."""
+    if rows.size == 0:
+        return
+    for c in range(acc.shape[1]):
+        acc[:, c] += np.bincount(rows, weights=vals[:, c], minlength=acc.shape[0])
+
+
+def ambient_occlusion(intersector, p: np.ndarray, ng: np.ndarray, ns: np.ndarray, rng: np.random.Generator, *,
+                      samples: int, max_distance: float, eps: float, counter: _Counter | None = None) -> np.ndarray:
+    """Cosine-weighted ambient occlusion at surface points.
+
+    Parameters
+    ----------
+    intersector : occluders (the room and all objects)
+    p, ng, ns : (R, 3) points, geometric and shading normals (facing the viewer)
+    samples : rays per point
+    max_distance : metres; hits farther away do not occlude
+
+    Returns
+    -------
+    (R,) float64 in [0, 1]: the cosine-weighted share of the hemisphere about ``ns`` that is open
+    within ``max_distance`` (1 = open, 0 = enclosed).
+    """
+    n = p.shape[0]
+    if n == 0:
+        return np.ones(0)
+    pr = np.repeat(np.arange(n), samples)
+    u = rng.random((2, pr.size))
+    dl, _ = cosine_hemisphere(u[0], u[1])
+    dw = to_world(dl, ns[pr].astype(np.float64)).astype(np.float32)
+    org = offset_origins(p[pr], ng[pr], dw, eps)
+    occ = intersector.occluded(org, dw, np.float32(max_distance))
+    if counter is not None:
+        counter.rays += pr.size
+    return 1.0 - np.bincount(pr, weights=occ.astype(np.float64), minlength=n) / samples
+
+
+def render(scene: TraceScene, camera: Camera, mask: np.ndarray, settings: RenderSettings,
+           rng: np.random.Generator) -> FrameBuffers:
+    """Render the pixels in ``mask (H, W) bool`` with adaptive sampling; see the module docstring."""
+    H, W = camera.height, camera.width
+    if mask.shape != (H, W):
+        raise ValueError(f"mask shape {mask.shape} does not match the camera's {(H, W)}")
+    pix = np.flatnonzero(mask)
+    n = pix.size
+    counter = _Counter()
+    Ls = np.zeros((n, 3))
+    lum2 = np.zeros(n)
+    cnt = np.zeros(n, np.int64)
+    cov = np.zeros(n)
+    ao_s = np.zeros(n)
+    ao_n = np.zeros(n)
+    alb = np.zeros((n, 3))
+    nrm = np.zeros((n, 3))
+    active = np.arange(n)
+    done = 0
+    while active.size and done < settings.spp:
+        b = min(settings.spp_batch, settings.spp - done)
+        loc = np.repeat(active, b)
+        r = trace_samples(scene, camera, pix[loc], settings, rng, counter)
+        _add_rows(Ls, loc, r["L"])
+        lum = r["L"] @ LUMINANCE.astype(np.float64)
+        lum2 += np.bincount(loc, weights=lum * lum, minlength=n)
+        cnt += np.bincount(loc, minlength=n)
+        c = r["covered"].astype(np.float64)
+        cov += np.bincount(loc, weights=c, minlength=n)
+        ao_s += np.bincount(loc, weights=r["ao"] * c, minlength=n)
+        ao_n += np.bincount(loc, weights=c, minlength=n)
+        _add_rows(alb, loc, r["albedo"].astype(np.float64))
+        _add_rows(nrm, loc, r["normal"].astype(np.float64))
+        done += b
+        if done >= settings.spp_min and done < settings.spp:
+            m = (Ls[active] @ LUMINANCE) / cnt[active]
+            var = np.maximum(lum2[active] / cnt[active] - m * m, 0.0)
+            se = np.sqrt(var / cnt[active])
+            covered_m = (Ls @ LUMINANCE)[cov > 0] / cnt[cov > 0]
+            floor = 0.1 * float(covered_m.mean()) if covered_m.size else 0.0
+            active = active[se > settings.noise_target * np.maximum(m, floor)]
+    cnt_safe = np.maximum(cnt, 1)
+    R_w2c = camera.T_c2w[:3, :3].T
+    out_pbr = np.zeros((H * W, 3), np.float32)
+    out_ao = np.ones(H * W, np.float32)
+    out_cov = np.zeros(H * W, np.float32)
+    out_alb = np.zeros((H * W, 3), np.float32)
+    out_nrm = np.zeros((H * W, 3), np.float32)
+    out_spp = np.zeros(H * W, np.int32)
+    out_pbr[pix] = Ls / cnt_safe[:, None]
+    out_cov[pix] = cov / cnt_safe
+    out_ao[pix] = np.where(ao_n > 0, ao_s / np.maximum(ao_n, 1), 1.0)
+    out_alb[pix] = alb / cnt_safe[:, None]
+    out_nrm[pix] = (nrm / cnt_safe[:, None]) @ R_w2c.T
+    out_spp[pix] = cnt
+    log.debug("rendered %d pixels, %d rays, mean spp %.1f", n, counter.rays, cnt.mean() if n else 0.0)
+    return FrameBuffers(pbr=out_pbr.reshape(H, W, 3), ao=out_ao.reshape(H, W), coverage=out_cov.reshape(H, W),
+                        albedo=out_alb.reshape(H, W, 3), normal=out_nrm.reshape(H, W, 3),
+                        spp=out_spp.reshape(H, W), rays=counter.rays)
+
+
+def trace_mask(labels: np.ndarray, edge_band: int) -> np.ndarray:
+    """Pixels to trace: where ``labels (H, W)`` is non-zero, dilated by ``edge_band`` pixels (square)."""
+    m = np.asarray(labels) > 0
+    if edge_band <= 0 or not m.any():
+        return m
+    from scipy.ndimage import binary_dilation
+
+    return binary_dilation(m, structure=np.ones((3, 3), bool), iterations=edge_band)

@@ -1,0 +1,194 @@
+"""The scene the tracer sees: room + placed objects as one triangle soup with per-vertex attributes.
+
+Triangles ``[0, num_room_tris)`` are the room, the rest the object instances in placement order.
+``tri_inst`` is 0 for the room and ``k + 1`` for instance ``k`` (the raster label convention).
+Surfaces have a linear base colour (albedo) and a linear emitted radiance per vertex; in the "scan"
+lighting mode the room emits its own colours and reflects nothing, in the "published" mode it emits
+nothing and reflects its colours diffusely. Objects never emit.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.trace.intersect import EmbreeIntersector, Intersector
+from pipeline.trace.lights import (AreaLights, PointLights, build_area_lights, detect_bright_triangles,
+                                   mean_radiance, published_lights, srgb_to_linear)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Textures:
+    """Base-colour textures of textured instances."""
+
+    inst: tuple[int, ...]                 # instance numbers (tri_inst values) that use a texture
+    images: tuple[np.ndarray, ...]        # (H, W, 3) float32 linear RGB, one per entry of ``inst``
+
+
+@dataclass(frozen=True)
+class TraceScene:
+    """Geometry, materials and lights of one frame's scene, in the world frame (metres)."""
+
+    vertices: np.ndarray      # (V, 3) float32, world
+    faces: np.ndarray         # (T, 3) int32
+    normals: np.ndarray       # (V, 3) float32 unit vertex normals, world
+    tri_inst: np.ndarray      # (T,) int32, 0 = room, k + 1 = object instance k
+    albedo: np.ndarray        # (V, 3) float32 linear base colour
+    emission: np.ndarray      # (V, 3) float32 linear radiance
+    uv: np.ndarray            # (V, 2) float32 texture coordinates (OpenGL, v up); 0 where untextured
+    metallic: np.ndarray      # (N + 1,) float32 per instance (index 0 = room)
+    roughness: np.ndarray     # (N + 1,) float32 perceptual roughness per instance
+    specular: np.ndarray      # (N + 1,) float32 dielectric specular scale per instance
+    textures: Textures
+    area_lights: AreaLights   # emitters sampled explicitly (NEE + MIS)
+    point_lights: PointLights  # delta lights (published mode); may be empty
+    env_radiance: np.ndarray  # (3,) float32, radiance of rays that escape the scene
+    num_room_tris: int
+    scale: float              # metres, a size of the scene (for ray offsets)
+    intersector: Intersector
+
+    @property
+    def num_instances(self) -> int:
+        return int(self.metallic.shape[0]) - 1
+
+
+@dataclass(frozen=True)
+class ObjectInstance:
+    """One placed object: its mesh in world coordinates and its material."""
+
+    vertices: np.ndarray          # (V, 3) float, world, metres
+    faces: np.ndarray             # (T, 3) int
+    normals: np.ndarray           # (V, 3) float unit normals, world
+    albedo: np.ndarray            # (V, 3) float32 linear base colour
+    uv: np.ndarray | None = None  # (V, 2) float32 or None
+    texture: np.ndarray | None = None  # (H, W, 3) float32 linear, or None
+    metallic: float = 0.0
+    roughness: float = 0.5
+    specular: float = 1.0
+
+
+def instance_from_model(model, R_m2w: np.ndarray, t_m2w: np.ndarray) -> ObjectInstance:
+    """An :class:`ObjectInstance` from a :class:`pipeline.types.ObjectModel` and its pose."""
+    R = np.asarray(R_m2w, np.float64)
+    v = np.asarray(model.vertices, np.float64) @ R.T + np.asarray(t_m2w, np.float64)
+    n = np.asarray(model.normals, np.float64) @ R.T
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    nv = v.shape[0]
+    tex = None
+    uv = None
+    if model.vertex_colors is not None:
+        alb = srgb_to_linear(model.vertex_colors)
+    else:
+        alb = np.tile(np.asarray(model.base_color, np.float32), (nv, 1))
+        if model.texture is not None and model.uv is not None:
+            tex = srgb_to_linear(model.texture)
+            uv = np.asarray(model.uv, np.float32)
+            alb = np.ones((nv, 3), np.float32)
+    return ObjectInstance(vertices=v, faces=np.asarray(model.faces), normals=n, albedo=alb, uv=uv,
+                          texture=tex, metallic=float(model.metallic), roughness=float(model.roughness))
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals (V, 3) float32 (zero-area neighbourhoods get +z)."""
+    v = np.asarray(vertices, np.float64)
+    f = np.asarray(faces, np.int64)
+    fn = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    n = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(n, f[:, k], fn)
+    ln = np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.where(ln > 0, n / np.maximum(ln, 1e-300), np.array([0.0, 0.0, 1.0]))
+    return n.astype(np.float32)
+
+
+def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: np.ndarray | None,
+                objects: list[ObjectInstance], *, lighting: str = "scan", radiance_scale: float = 1.0,
+                light_threshold: int = 250, light_gain: float = 4.0, env_radiance: np.ndarray | None = None,
+                published_power: float = 1.0, up: np.ndarray | None = None,
+                room_linear_radiance: np.ndarray | None = None) -> TraceScene:
+    """Assemble a :class:`TraceScene` and its Embree intersector.
+
+    Parameters
+    ----------
+    room_vertices, room_faces : (V, 3) float metres, (T, 3) int; may be empty
+    room_colors : (V, 3) uint8 sRGB vertex colours of the room, or None (grey 0.5)
+    objects : placed objects, instance ``k`` gets ``tri_inst = k + 1``
+    lighting : "scan" (room emits its colours) or "published" (four point lights, room diffuse)
+    radiance_scale : multiplies the room's linear colours to give radiance
+    light_threshold, light_gain : clipped-colour detection (0..255) and the radiance gain of the lights
+        it finds; ``light_gain <= 0`` disables detection
+    env_radiance : (3,) radiance of escaping rays; None = the room's mean radiance (scan mode) or 0
+    up : (3,) unit up vector of the world (published lights); None = +z
+    room_linear_radiance : (V, 3) float linear radiance given directly (tests, reference scenes);
+        replaces the colour conversion and disables clipped-light detection
+    """
+    rv = np.asarray(room_vertices, np.float64).reshape(-1, 3)
+    rf = np.asarray(room_faces, np.int64).reshape(-1, 3)
+    nrv, nrt = rv.shape[0], rf.shape[0]
+    if room_linear_radiance is not None:
+        room_lin = np.asarray(room_linear_radiance, np.float32).reshape(-1, 3)
+        bright = np.zeros(nrt, bool)
+    else:
+        cols = (np.asarray(room_colors) if room_colors is not None
+                else np.full((nrv, 3), 188, np.uint8))  # sRGB 188 = linear 0.5
+        room_lin = srgb_to_linear(cols) * np.float32(radiance_scale)
+        bright = (detect_bright_triangles(cols, rf, threshold=light_threshold) if light_gain > 0
+                  else np.zeros(nrt, bool))
+
+    verts = [rv]
+    faces = [rf]
+    norms = [vertex_normals(rv, rf) if nrt else np.zeros((nrv, 3), np.float32)]
+    tri_inst = [np.zeros(nrt, np.int32)]
+    emis = [room_lin.copy() if lighting == "scan" else np.zeros((nrv, 3), np.float32)]
+    albedo = [np.zeros((nrv, 3), np.float32) if lighting == "scan" else np.clip(room_lin, 0, 1)]
+    uvs = [np.zeros((nrv, 2), np.float32)]
+    metallic, roughness, specular = [0.0], [1.0], [0.0]
+    tex_inst, tex_img = [], []
+    off = nrv
+    for k, ob in enumerate(objects):
+        ov = np.asarray(ob.vertices, np.float64)
+        verts.append(ov)
+        faces.append(np.asarray(ob.faces, np.int64) + off)
+        norms.append(np.asarray(ob.normals, np.float32))
+        tri_inst.append(np.full(len(ob.faces), k + 1, np.int32))
+        emis.append(np.zeros((len(ov), 3), np.float32))
+        albedo.append(np.asarray(ob.albedo, np.float32))
+        uvs.append(np.asarray(ob.uv, np.float32) if ob.uv is not None else np.zeros((len(ov), 2), np.float32))
+        metallic.append(ob.metallic)
+        roughness.append(ob.roughness)
+        specular.append(ob.specular)
+        if ob.texture is not None and ob.uv is not None:
+            tex_inst.append(k + 1)
+            tex_img.append(np.asarray(ob.texture, np.float32))
+        off += len(ov)
+    V = np.concatenate(verts).astype(np.float32)
+    F = np.concatenate(faces).astype(np.int32)
+    E = np.concatenate(emis).astype(np.float32)
+    if lighting == "scan" and bright.any():
+        light_v = np.unique(rf[bright])
+        E[light_v] *= np.float32(light_gain)
+    light_mask = np.zeros(len(F), bool)
+    light_mask[:nrt] = bright if lighting == "scan" else False
+    area = build_area_lights(V, F, E, light_mask)
+    if lighting == "published" and nrv:
+        pts = published_lights(rv, np.array([0.0, 0.0, 1.0]) if up is None else up, power=published_power)
+    else:
+        pts = PointLights(position=np.zeros((0, 3)), intensity=np.zeros((0, 3)))
+    if env_radiance is None:
+        env = mean_radiance(rv, rf, room_lin) if lighting == "scan" else np.zeros(3, np.float32)
+    else:
+        env = np.asarray(env_radiance, np.float32).reshape(3)
+    ext = V.max(axis=0) - V.min(axis=0) if len(V) else np.ones(3)
+    log.debug("trace scene: %d triangles (%d room), %d area lights, %d point lights",
+              len(F), nrt, area.count, pts.count)
+    return TraceScene(vertices=V, faces=F, normals=np.concatenate(norms).astype(np.float32),
+                      tri_inst=np.concatenate(tri_inst), albedo=np.concatenate(albedo).astype(np.float32),
+                      emission=E, uv=np.concatenate(uvs), metallic=np.asarray(metallic, np.float32),
+                      roughness=np.asarray(roughness, np.float32), specular=np.asarray(specular, np.float32),
+                      textures=Textures(tuple(tex_inst), tuple(tex_img)), area_lights=area, point_lights=pts,
+                      env_radiance=env, num_room_tris=nrt, scale=float(np.max(ext)),
+                      intersector=EmbreeIntersector(V, F))

@@ -1,0 +1,362 @@
+"""Tests of pipeline/trace: intersectors, sampling, BSDF, AO and the wavefront integrator.
+
+Analytic scenes only (NumPy meshes built here); every figure has a closed-form answer.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from pipeline.trace import bsdf
+from pipeline.trace.intersect import EmbreeIntersector, NumPySlowIntersector
+from pipeline.trace.lights import AreaLights, published_lights, srgb_to_linear
+from pipeline.trace.pbr import Camera, RenderSettings, ambient_occlusion, render, trace_mask
+from pipeline.trace.sampling import ggx_reflect_pdf, ggx_sample_vndf, reflect
+from pipeline.trace.scene import ObjectInstance, build_scene
+from pipeline.trace.shapes import box_room, grid_quad, look_at, quad, uv_sphere
+
+
+def sphere_object(radius=0.5, center=(0, 0, 0), albedo=1.0, **mat) -> ObjectInstance:
+    v, f, n = uv_sphere(radius, center, n_lat=32, n_lon=64)
+    return ObjectInstance(vertices=v, faces=f, normals=n, albedo=np.full((len(v), 3), albedo, np.float32), **mat)
+
+
+def camera(eye=(0.0, -2.5, 0.0), target=(0.0, 0.0, 0.0), w=48, h=36, f=40.0) -> Camera:
+    K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+    return Camera(K=K, T_c2w=look_at(eye, target), width=w, height=h)
+
+
+EMPTY = (np.zeros((0, 3)), np.zeros((0, 3), np.int32), None)
+
+
+# --------------------------------------------------------------------------------------------------
+# Intersectors
+# --------------------------------------------------------------------------------------------------
+
+def test_embree_matches_slow_numpy_on_random_and_grazing_rays():
+    rng = np.random.default_rng(1)
+    sv, sf, _ = uv_sphere(0.7, (0.1, -0.2, 0.3), n_lat=10, n_lon=20)
+    tv = rng.uniform(-1, 1, (60, 3, 3))  # random triangle soup, some long and thin
+    pv, pf = grid_quad((0, 0, -0.8), (1.5, 0, 0), (0, 1.5, 0), 4)
+    verts = np.concatenate([sv, tv.reshape(-1, 3), pv])
+    faces = np.concatenate([sf, np.arange(180).reshape(60, 3) + len(sv), pf + len(sv) + 180]).astype(np.int32)
+    n = 3000
+    o = rng.uniform(-2, 2, (n, 3))
+    d = rng.normal(size=(n, 3))
+    # grazing rays: nearly parallel to the plane z = -0.8, just above and below it
+    g = 600
+    o[:g] = np.c_[rng.uniform(-2, 2, (g, 2)), -0.8 + rng.choice([-1, 1], g) * rng.uniform(1e-4, 1e-2, g)]
+    d[:g] = np.c_[rng.normal(size=(g, 2)), rng.normal(scale=1e-3, size=g)]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o, d = o.astype(np.float32), d.astype(np.float32)
+    fast = EmbreeIntersector(verts, faces).intersect(o, d)
+    slow = NumPySlowIntersector(verts, faces).intersect(o, d)
+    assert fast.hit.sum() > n // 5 and (~fast.hit).sum() > n // 10  # the test exercises both outcomes
+    # rays whose slow answer is numerically unambiguous (hit not within float32 noise of an edge)
+    w = np.stack([1 - slow.u - slow.v, slow.u, slow.v], 1)
+    margin = np.where(slow.hit, w.min(axis=1), 1.0)
+    clear = margin > 1e-4
+    assert clear.mean() > 0.98
+    np.testing.assert_array_equal(fast.hit[clear], slow.hit[clear])
+    both = clear & slow.hit
+    np.testing.assert_allclose(fast.t[both], slow.t[both], rtol=1e-4, atol=1e-5)
+    same_prim = fast.prim[both] == slow.prim[both]
+    assert same_prim.mean() > 0.999  # different prims only for coincident hits (same t)
+    occ_f = EmbreeIntersector(verts, faces).occluded(o, d, 1.0)
+    occ_s = slow.hit & (slow.t < 1.0)
+    agree = occ_f == occ_s
+    assert agree[clear & (np.abs(slow.t - 1.0) > 1e-4)].all()
+
+
+def test_intersectors_respect_tmax_and_empty_mesh():
+    v, f = quad((0, 0, 1), (1, 0, 0), (0, 1, 0))
+    o = np.zeros((2, 3), np.float32)
+    d = np.array([[0, 0, 1], [0, 0, 1]], np.float32)
+    for cls in (EmbreeIntersector, NumPySlowIntersector):
+        h = cls(v, f).intersect(o, d, np.array([2.0, 0.5], np.float32))
+        assert h.hit.tolist() == [True, False] and h.t[0] == pytest.approx(1.0)
+        e = cls(np.zeros((0, 3)), np.zeros((0, 3), np.int32)).intersect(o, d)
+        assert not e.hit.any() and np.isinf(e.t).all()
+
+
+# --------------------------------------------------------------------------------------------------
+# Sampling and BSDF
+# --------------------------------------------------------------------------------------------------
+
+def _chi2_directions(sample_fn, pdf_fn, n=200_000, nz=12, nphi=24, seed=0):
+    """Chi-square test of sampled local directions against a solid-angle pdf (z = cos(theta), phi bins)."""
+    rng = np.random.default_rng(seed)
+    wi = sample_fn(rng, n)
+    below = wi[:, 2] <= 0
+    up = wi[~below]
+    zi = np.clip((up[:, 2] * nz).astype(int), 0, nz - 1)
+    pi_ = np.clip(((np.arctan2(up[:, 1], up[:, 0]) % (2 * np.pi)) / (2 * np.pi) * nphi).astype(int), 0, nphi - 1)
+    obs = np.bincount(zi * nphi + pi_, minlength=nz * nphi).astype(float)
+    # expected mass per bin: integrate the pdf on a fine sub-grid (d omega = dz dphi)
+    sub = 16
+    zs = (np.arange(nz * sub) + 0.5) / (nz * sub)
+    ps = (np.arange(nphi * sub) + 0.5) / (nphi * sub) * 2 * np.pi
+    Z, P = np.meshgrid(zs, ps, indexing="ij")
+    s = np.sqrt(1 - Z ** 2)
+    dirs = np.stack([s * np.cos(P), s * np.sin(P), Z], -1).reshape(-1, 3)
+    dens = pdf_fn(dirs).reshape(nz * sub, nphi * sub) * (1.0 / (nz * sub)) * (2 * np.pi / (nphi * sub))
+    exp = dens.reshape(nz, sub, nphi, sub).sum(axis=(1, 3)).ravel() * n
+    obs = np.append(obs, below.sum())
+    exp = np.append(exp, max(n - exp.sum(), 0.0))
+    # merge bins with small expectations (chi-square needs >= 5 expected per cell)
+    order = np.argsort(exp)
+    small = order[np.cumsum(exp[order]) < 5 * 4]
+    keep = np.setdiff1d(np.arange(exp.size), small)
+    o2 = np.append(obs[keep], obs[small].sum())
+    e2 = np.append(exp[keep], exp[small].sum())
+    e2 *= o2.sum() / e2.sum()
+    chi2 = float(((o2 - e2) ** 2 / np.maximum(e2, 1e-12)).sum())
+    return stats.chi2.sf(chi2, df=o2.size - 1)
+
+
+@pytest.mark.parametrize("alpha,theta_deg", [(0.15, 20.0), (0.4, 60.0), (0.8, 80.0)])
+def test_ggx_vndf_sampling_passes_chi_square_against_its_pdf(alpha, theta_deg):
+    th = np.radians(theta_deg)
+    wo1 = np.array([np.sin(th), 0.0, np.cos(th)])
+
+    def sample(rng, n):
+        wo = np.tile(wo1, (n, 1))
+        h = ggx_sample_vndf(wo, np.full(n, alpha), rng.random(n), rng.random(n))
+        return reflect(wo, h)
+
+    def pdf(dirs):
+        return ggx_reflect_pdf(np.tile(wo1, (len(dirs), 1)), dirs, np.full(len(dirs), alpha))
+
+    assert _chi2_directions(sample, pdf) > 1e-3
+
+
+@pytest.mark.parametrize("metallic,roughness,spec", [(0.0, 0.5, 1.0), (0.5, 0.3, 1.0), (1.0, 0.6, 1.0)])
+def test_bsdf_mixture_sampling_passes_chi_square_against_its_pdf(metallic, roughness, spec):
+    th = np.radians(45.0)
+    wo1 = np.array([np.sin(th), 0.0, np.cos(th)])
+
+    def mat(n):
+        return bsdf.Material(np.full((n, 3), 0.7), np.full(n, metallic), np.full(n, roughness), np.full(n, spec))
+
+    def sample(rng, n):
+        wi, _, _ = bsdf.sample(np.tile(wo1, (n, 1)), mat(n), rng.random(n), rng.random(n), rng.random(n))
+        return wi
+
+    def pdf(dirs):
+        return bsdf.pdf(np.tile(wo1, (len(dirs), 1)), dirs, mat(len(dirs)))
+
+    assert _chi2_directions(sample, pdf) > 1e-3
+
+
+@pytest.mark.parametrize("metallic", [0.0, 0.5, 1.0])
+@pytest.mark.parametrize("roughness", [0.05, 0.3, 0.7, 1.0])
+def test_bsdf_conserves_energy_and_sampling_is_unbiased(metallic, roughness):
+    """Directional albedo <= 1 for a white base colour at every angle; importance-sampled estimate
+    equals the uniform-hemisphere estimate of the same integral."""
+    rng = np.random.default_rng(3)
+    n = 100_000
+    for cos_o in (1.0, 0.7, 0.3, 0.05):
+        wo = np.tile([np.sqrt(1 - cos_o ** 2), 0.0, cos_o], (n, 1))
+        m = bsdf.Material(np.ones((n, 3)), np.full(n, metallic), np.full(n, roughness), np.ones(n))
+        wi, fc, pdf = bsdf.sample(wo, m, rng.random(n), rng.random(n), rng.random(n))
+        est = np.where(pdf > 0, fc[:, 0] / np.where(pdf > 0, pdf, 1), 0.0)
+        mean, se = est.mean(), est.std() / np.sqrt(n)
+        assert mean <= 1.0 + 4 * se + 1e-3, (cos_o, mean)
+        assert (fc >= 0).all()
+        if roughness >= 0.3:  # a uniform-hemisphere estimate is only precise for broad lobes
+            z = rng.random(n)
+            phi = 2 * np.pi * rng.random(n)
+            s = np.sqrt(1 - z * z)
+            wu = np.stack([s * np.cos(phi), s * np.sin(phi), z], 1)
+            uni = bsdf.eval_f_cos(wo, wu, m)[:, 0] * 2 * np.pi
+            se_u = uni.std() / np.sqrt(n)
+            assert abs(uni.mean() - mean) < 4 * np.hypot(se, se_u) + 2e-3
+
+
+def test_lambert_mode_is_exactly_lambertian():
+    n = 1000
+    rng = np.random.default_rng(0)
+    wo = np.tile([0.6, 0.0, 0.8], (n, 1))
+    wi = rng.normal(size=(n, 3))
+    wi[:, 2] = np.abs(wi[:, 2])
+    wi /= np.linalg.norm(wi, axis=1, keepdims=True)
+    m = bsdf.Material(np.full((n, 3), 0.4), np.zeros(n), np.full(n, 0.5), np.zeros(n))
+    np.testing.assert_allclose(bsdf.eval_f_cos(wo, wi, m), 0.4 / np.pi * wi[:, 2:3] * np.ones((1, 3)), rtol=1e-12)
+
+
+def test_srgb_to_linear_endpoints_and_midpoint():
+    np.testing.assert_allclose(srgb_to_linear(np.array([0, 255, 188], np.uint8)), [0.0, 1.0, 0.5], atol=3e-3)
+
+
+# --------------------------------------------------------------------------------------------------
+# Ambient occlusion
+# --------------------------------------------------------------------------------------------------
+
+def _ao_at(verts, faces, p, n, samples=100_000, max_distance=10.0, seed=0):
+    isect = EmbreeIntersector(verts, faces)
+    P = np.asarray([p], np.float32)
+    N = np.asarray([n], np.float32)
+    return ambient_occlusion(isect, P, N, N, np.random.default_rng(seed), samples=samples,
+                             max_distance=max_distance, eps=1e-4)[0]
+
+
+def test_ao_is_one_on_an_open_plane():
+    v, f = grid_quad((0, 0, 0), (5, 0, 0), (0, 5, 0), 4)
+    assert _ao_at(v, f, (0.3, -0.2, 0.0), (0, 0, 1), samples=20_000) == 1.0
+
+
+def test_ao_is_zero_inside_a_closed_sphere():
+    v, f, _ = uv_sphere(1.0, n_lat=16, n_lon=32, inward=True)
+    assert _ao_at(v, f, (0.0, 0.0, -0.999), (0, 0, 1), samples=20_000) == 0.0
+    assert _ao_at(v, f, (0.0, 0.0, 0.0), (1, 0, 0), samples=20_000) == 0.0
+
+
+def test_ao_above_a_plane_with_a_square_blocker_matches_the_form_factor():
+    a, h = 0.5, 0.4  # square half-size and height above the point
+    pv, pf = grid_quad((0, 0, 0), (5, 0, 0), (0, 5, 0), 4)
+    bv, bf = quad((0, 0, h), (a, 0, 0), (0, -a, 0))  # facing down
+    v = np.concatenate([pv, bv])
+    f = np.concatenate([pf, bf + len(pv)])
+    X = a / h  # point-to-parallel-rectangle form factor, four corner rectangles a x a
+    F = 4 * (1 / (2 * np.pi)) * 2 * (X / np.sqrt(1 + X * X) * np.arctan(X / np.sqrt(1 + X * X)))
+    ao = _ao_at(v, f, (0, 0, 0), (0, 0, 1), samples=400_000)
+    assert ao == pytest.approx(1 - F, abs=4e-3)
+    # a blocker beyond the AO distance does not count
+    assert _ao_at(v, f, (0, 0, 0), (0, 0, 1), samples=20_000, max_distance=0.3) == 1.0
+
+
+# --------------------------------------------------------------------------------------------------
+# Integrator
+# --------------------------------------------------------------------------------------------------
+
+def _interior(fb):
+    return fb.coverage > 0.999
+
+
+def test_white_furnace_lambert_sphere_renders_one():
+    sc = build_scene(*EMPTY, [sphere_object(specular=0.0)], env_radiance=np.ones(3))
+    fb = render(sc, camera(), np.ones((36, 48), bool), RenderSettings(spp=8, spp_min=8), np.random.default_rng(0))
+    px = fb.pbr[_interior(fb)]
+    assert px.size > 300 and np.abs(px - 1.0).max() < 5e-3
+
+
+def test_white_furnace_with_inter_reflection_and_russian_roulette():
+    obs = [sphere_object(0.45, (-0.5, 0, 0), specular=0.0), sphere_object(0.45, (0.5, 0, 0), specular=0.0)]
+    sc = build_scene(*EMPTY, obs, env_radiance=np.ones(3))
+    s = RenderSettings(spp=64, spp_min=64, max_depth=64, rr_depth=1)
+    fb = render(sc, camera(), np.ones((36, 48), bool), s, np.random.default_rng(0))
+    px = fb.pbr[_interior(fb)]
+    assert abs(px.mean() - 1.0) < 5e-3
+
+
+def test_white_furnace_inside_an_emitting_room():
+    rv, rf = box_room((-2, -3, -2), (2, 3, 2), n=4)
+    sc = build_scene(rv, rf, None, [sphere_object(specular=0.0)], room_linear_radiance=np.ones((len(rv), 3)))
+    fb = render(sc, camera(), np.ones((36, 48), bool), RenderSettings(spp=4, spp_min=4), np.random.default_rng(0))
+    assert np.abs(fb.pbr[_interior(fb)] - 1.0).max() < 5e-3
+
+
+def test_smooth_white_metal_furnace_is_near_one():
+    sc = build_scene(*EMPTY, [sphere_object(metallic=1.0, roughness=0.05)], env_radiance=np.ones(3))
+    fb = render(sc, camera(), np.ones((36, 48), bool), RenderSettings(spp=4, spp_min=4), np.random.default_rng(0))
+    px = fb.pbr[_interior(fb)]
+    assert abs(px.mean() - 1.0) < 5e-3 and px.max() <= 1.0 + 1e-4
+
+
+def test_lit_by_room_matches_albedo_times_radiance():
+    rv, rf = box_room((-2, -3, -2), (2, 3, 2), n=4)
+    sc = build_scene(rv, rf, None, [sphere_object(albedo=0.3, specular=0.0)],
+                     room_linear_radiance=np.full((len(rv), 3), 0.8))
+    fb = render(sc, camera(), np.ones((36, 48), bool), RenderSettings(spp=4, spp_min=4), np.random.default_rng(0))
+    np.testing.assert_allclose(fb.pbr[_interior(fb)], 0.24, rtol=1e-4)
+    assert fb.ao[_interior(fb)].min() == 1.0  # room farther than the AO distance
+
+
+def test_nee_with_mis_matches_bsdf_sampling_alone():
+    """A bright (clipped) ceiling patch sampled explicitly gives the same image as BSDF sampling only,
+    with less noise."""
+    rv, rf = box_room((-2, -3, -2), (2, 3, 2), n=8)
+    col = np.zeros((len(rv), 3), np.uint8)
+    lamp = (rv[:, 2] > 1.99) & (np.abs(rv[:, 0]) < 1.01) & (np.abs(rv[:, 1]) < 1.6)
+    col[lamp] = 255
+    obs = [sphere_object(0.5, (0, 0, 0), albedo=0.7, roughness=0.5)]
+    sc = build_scene(rv, rf, col, obs, light_gain=3.0)
+    assert sc.area_lights.count > 0
+    no_nee = dataclasses.replace(sc, area_lights=AreaLights(tri=np.zeros(0, np.int64), cdf=np.zeros(0),
+                                                              prob=np.zeros(0), area=np.zeros(0),
+                                                              prob_of_tri=np.zeros(len(sc.faces))))
+    s = RenderSettings(spp=256, spp_min=256, max_depth=1)
+    cam = camera(w=24, h=18, f=40.0)
+    mask = np.ones((18, 24), bool)
+    a1, a2 = (render(sc, cam, mask, s, np.random.default_rng(k)) for k in (1, 2))
+    b1, b2 = (render(no_nee, cam, mask, s, np.random.default_rng(k)) for k in (3, 4))
+    m = _interior(a1) & _interior(b1)
+    assert m.sum() > 150
+    a = 0.5 * (a1.pbr[m] + a2.pbr[m])
+    b = 0.5 * (b1.pbr[m] + b2.pbr[m])
+    assert abs(a.mean() / b.mean() - 1) < 0.02
+    assert np.std(a1.pbr[m] - a2.pbr[m]) < 0.7 * np.std(b1.pbr[m] - b2.pbr[m])
+
+
+def test_primary_ray_hitting_the_room_first_contributes_nothing():
+    wall_v, wall_f = quad((0, -1.5, 0), (2, 0, 0), (0, 0, 2))  # between camera and sphere
+    sc = build_scene(wall_v, wall_f, None, [sphere_object()], env_radiance=np.ones(3))
+    fb = render(sc, camera(), np.ones((36, 48), bool), RenderSettings(spp=4, spp_min=4), np.random.default_rng(0))
+    assert fb.coverage.max() == 0 and fb.pbr.max() == 0 and fb.ao.min() == 1.0
+
+
+def test_coverage_is_fractional_on_edges_and_outputs_are_deterministic():
+    sc = build_scene(*EMPTY, [sphere_object(specular=0.0)], env_radiance=np.ones(3))
+    s = RenderSettings(spp=16, spp_min=16)
+    mask = trace_mask(np.ones((36, 48), np.uint16), 1)
+    a = render(sc, camera(), mask, s, np.random.default_rng(5))
+    b = render(sc, camera(), mask, s, np.random.default_rng(5))
+    for k in ("pbr", "ao", "coverage", "albedo", "normal"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+    edge = (a.coverage > 0) & (a.coverage < 1)
+    assert edge.sum() > 20
+    # premultiplied: radiance equals coverage for a white furnace
+    np.testing.assert_allclose(a.pbr[..., 0], a.coverage, atol=5e-3)
+    # sphere's projected area: pi r'^2 with r' the silhouette radius in pixels
+    d, r, f = 2.5, 0.5, 40.0
+    r_px = f * r / np.sqrt(d * d - r * r)
+    assert a.coverage.sum() == pytest.approx(np.pi * r_px ** 2, rel=0.03)
+
+
+def test_adaptive_sampling_stops_early_on_noise_free_pixels():
+    sc = build_scene(*EMPTY, [sphere_object(specular=0.0)], env_radiance=np.ones(3))
+    fb = render(sc, camera(), np.ones((36, 48), bool), RenderSettings(spp=64, spp_min=4, spp_batch=4),
+                np.random.default_rng(0))
+    assert fb.spp[_interior(fb)].max() == 4  # zero variance inside: stop at spp_min
+    assert fb.spp.max() > 4  # edge pixels are noisy (coverage) and go on
+
+
+def test_trace_mask_dilates_labels_by_the_edge_band():
+    lab = np.zeros((9, 9), np.uint16)
+    lab[4, 4] = 3
+    assert trace_mask(lab, 0).sum() == 1 and trace_mask(lab, 1).sum() == 9 and trace_mask(lab, 2).sum() == 25
+    assert trace_mask(np.zeros((4, 4), np.uint16), 2).sum() == 0
+
+
+def test_published_lights_give_irradiance_pi_at_the_floor_centre():
+    rv, _ = box_room((0, 0, 0), (4, 6, 3), n=1)
+    pl = published_lights(rv, np.array([0, 0, 1.0]), power=1.0)
+    assert pl.count == 4 and np.all(pl.position[:, 2] == pytest.approx(2.7))
+    d = pl.position - np.array([2, 3, 0])
+    E = np.sum(pl.intensity[:, 0] * d[:, 2] / np.linalg.norm(d, axis=1) ** 3)
+    assert E == pytest.approx(np.pi)
+
+
+def test_published_mode_lights_an_object_from_above():
+    rv, rf = box_room((-2, -3, -2), (2, 3, 2), n=4)
+    sc = build_scene(rv, rf, None, [sphere_object(specular=0.0, albedo=0.5)], lighting="published")
+    assert sc.point_lights.count == 4 and sc.emission.max() == 0
+    cam = camera()
+    fb = render(sc, cam, np.ones((36, 48), bool), RenderSettings(spp=16, spp_min=16), np.random.default_rng(0))
+    top = fb.pbr[:12][_interior(fb)[:12]].mean()
+    bottom = fb.pbr[-12:][_interior(fb)[-12:]].mean()
+    assert top > 2 * bottom > 0  # lit from above, the bottom only by the room's bounce light
