@@ -1,0 +1,277 @@
+"""Ingest stage: read room scans and object libraries into the run folder.
+
+Items: one per entry of ``scan.paths`` (key = scene name: the folder name made folder-safe and unique)
+and one item ``objects``. A scan item writes::
+
+    RUN/ingest/<scene>/scan.json    scalars, paths, format, up, meta (skipped frames, notes)
+    RUN/ingest/<scene>/frames.npz   frame_ids (F,) int64, K (F,3,3), T_c2w (F,4,4), depth_K (F,3,3) float64
+    RUN/ingest/<scene>/room.ply     room mesh: metres, world frame, uint8 vertex colours
+
+The room mesh is the scan's own mesh converted (textured OBJ -> vertex colours), or a TSDF reconstruction
+(:mod:`pipeline.reconstruct`). The up direction comes from the scan's metadata when it has some (7-Scenes
+``gravity-direction.txt``), else from the dominant floor plane of the mesh and the cameras' up vote.
+
+The objects item writes ``RUN/ingest/objects/obj_XXXXXX.npz`` + ``library.json`` (:mod:`pipeline.objects`).
+
+Loading API for later stages: :func:`list_scenes`, :func:`load_scan`, :func:`load_objects`,
+:func:`read_color`, :func:`read_depth`, :func:`load_room_mesh`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import os
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import BUILTIN_PREFIX, Config
+from pipeline.errors import InputError, UserError
+from pipeline.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, load_npz, read_json
+from pipeline.runner import Item, Stage, StageContext
+from pipeline.scanformats.common import IngestWarning, read_color, read_depth, select_frames, subsample
+from pipeline.scanformats.mesh import (canonical_order, check_mesh_covers_cameras, load_mesh_file, ply_bytes,
+                                       read_room_ply)
+from pipeline.types import ObjectModel, Scan
+
+log = logging.getLogger(__name__)
+
+__all__ = ["STAGE", "list_scenes", "load_scan", "load_objects", "read_color", "read_depth", "load_room_mesh",
+           "ingest_scan", "scene_names"]
+
+OBJECTS_KEY = "objects"
+RESERVED = {OBJECTS_KEY, "_builtin", "_items"}
+BUILTIN_SCANS = ("demo", "tiny")
+SCAN_JSON, FRAMES_NPZ, ROOM_PLY = "scan.json", "frames.npz", "room.ply"
+
+
+# ---------------------------------------------------------------------------------------------------
+# Names
+# ---------------------------------------------------------------------------------------------------
+
+def scene_names(paths: tuple[str, ...] | list[str]) -> list[str]:
+    """Folder-safe, unique scene names for the entries of ``scan.paths`` (in order).
+
+    The folder's name (``builtin:demo`` -> ``demo``), with characters other than letters, digits, ``-``,
+    ``_`` and ``.`` replaced by ``_``; repeated names get ``-2``, ``-3``...; reserved names (``objects``)
+    get a ``-scan`` suffix.
+    """
+    out: list[str] = []
+    for p in paths:
+        base = p[len(BUILTIN_PREFIX):] if p.startswith(BUILTIN_PREFIX) else Path(p.rstrip("/\\")).name
+        base = re.sub(r"[^A-Za-z0-9_.-]", "_", base).strip(".") or "scan"
+        if base in RESERVED:
+            base += "-scan"
+        name, k = base, 2
+        while name in out:
+            name, k = f"{base}-{k}", k + 1
+        out.append(name)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------
+# One scan
+# ---------------------------------------------------------------------------------------------------
+
+def _builtin_scan(name: str, run_dir: Path) -> Path:
+    if name not in BUILTIN_SCANS:
+        raise UserError(f"scan.paths: unknown built-in scan 'builtin:{name}'; valid: "
+                        f"{', '.join('builtin:' + n for n in BUILTIN_SCANS)}")
+    try:
+        from pipeline.synthscan import builtin_scan
+    except ImportError as e:
+        raise UserError(f"scan.paths: 'builtin:{name}' needs the synthetic scan generator (pipeline.synthscan), "
+                        f"which cannot be imported ({e}); name a real scan folder instead") from None
+    return Path(builtin_scan(name, run_dir / "ingest" / "_builtin" / name))
+
+
+def room_mesh_for(scan: Scan, cfg: Config) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, str]:
+    """The room mesh of ``scan``: its own (or ``scan.mesh`` from the config) converted, else reconstructed.
+
+    Returns vertices (V, 3) float64 metres world frame, faces (T, 3) int32, colours (V, 3) uint8 or None,
+    and a note saying where it came from.
+    """
+    src = cfg.scan.mesh or scan.mesh_path
+    cams = scan.T_c2w[:, :3, 3]
+    if src:
+        V, F, C = load_mesh_file(src)
+        check_mesh_covers_cameras(V, cams, src)
+        V, F, C = canonical_order(V, F, C)
+        return V, F, C, f"converted from {src}"
+    if not any(scan.depth_paths):
+        raise InputError(f"{scan.root}: the scan has no mesh and no depth maps to reconstruct one from; "
+                         f"set scan.mesh to the room mesh file (metres, same world frame as the poses)")
+    from pipeline.reconstruct import fuse_tsdf
+
+    ic = cfg.ingest
+    V, F, C = fuse_tsdf(scan, voxel=ic.tsdf_voxel, trunc=ic.tsdf_trunc, depth_max=ic.depth_max,
+                        min_component_faces=ic.min_component_faces)
+    return V, F, C, f"TSDF reconstruction (voxel {ic.tsdf_voxel} m, truncation {ic.tsdf_trunc} m)"
+
+
+def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -> Scan:
+    """Read one scan folder, build its room mesh and up direction, write them to ``out_dir``.
+
+    Parameters
+    ----------
+    path : scan folder.
+    name : scene name (folder-safe).
+    out_dir : ``RUN/ingest/<name>``.
+    cfg : the run's configuration (``scan`` and ``ingest`` tables).
+
+    Returns
+    -------
+    The :class:`Scan` as :func:`load_scan` will read it back.
+    """
+    from pipeline.reconstruct import floor_up
+    from pipeline.scanformats.detect import read_scan
+
+    out_dir = Path(out_dir)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", IngestWarning)
+        scan = read_scan(path, cfg.scan.format)
+    notes = [str(w.message) for w in caught if issubclass(w.category, IngestWarning)]
+    for w in caught:  # re-issue so callers (and pytest) see them; also log them
+        if issubclass(w.category, IngestWarning):
+            log.warning("%s", w.message)
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    n_read = scan.num_frames
+    idx = subsample(n_read, cfg.scan.max_frames)
+    scan = select_frames(scan, idx)
+    V, F, C, mesh_note = room_mesh_for(scan, cfg)
+    up_meta, up_info = scan.up_w, {}
+    up_floor, up_info = floor_up(V, F, scan.T_c2w)
+    if np.linalg.norm(up_meta) > 0.5:
+        up = up_meta / np.linalg.norm(up_meta)
+        source = scan.meta.get("up_source", "metadata")
+        up_info["metadata_vs_floor_deg"] = float(np.degrees(np.arccos(np.clip(up @ up_floor, -1, 1))))
+    else:
+        up, source = up_floor, f"mesh: {up_info.get('method', 'floor plane')}"
+    mesh_path = out_dir / ROOM_PLY
+    atomic_write_bytes(mesh_path, ply_bytes(V, F, C))
+    meta = dict(scan.meta)
+    meta.update({"up_source": source, "up": up_info, "mesh": mesh_note, "frames_read": n_read,
+                 "frames_kept": int(len(idx)), "warnings": notes, "mesh_vertices": int(len(V)),
+                 "mesh_faces": int(len(F))})
+    scan = dataclasses.replace(scan, name=name, up_w=up.astype(np.float64), mesh_path=str(mesh_path.resolve()),
+                               meta=meta)
+    save_scan(out_dir, scan)
+    return scan
+
+
+def _relative(path: str, out_dir: Path) -> str:
+    """``path`` relative to the scene folder when it lies inside the run folder (so run folders can move
+    and equal runs give equal bytes), else unchanged (absolute)."""
+    if not path:
+        return path
+    run_dir = out_dir.resolve().parent.parent
+    p = Path(path).resolve()
+    if p.is_relative_to(run_dir):
+        return Path(os.path.relpath(p, out_dir.resolve())).as_posix()
+    return path
+
+
+def _absolute(path: str, out_dir: Path) -> str:
+    if not path or Path(path).is_absolute():
+        return path
+    return os.path.normpath(out_dir.resolve() / path)
+
+
+def save_scan(out_dir: str | Path, scan: Scan) -> None:
+    """Write ``scan.json`` + ``frames.npz`` (the room mesh is written separately)."""
+    out_dir = Path(out_dir)
+    atomic_save_npz(out_dir / FRAMES_NPZ, frame_ids=scan.frame_ids.astype(np.int64),
+                    K=scan.K.astype(np.float64), T_c2w=scan.T_c2w.astype(np.float64),
+                    depth_K=scan.depth_K.astype(np.float64))
+    rel = lambda p: _relative(p, out_dir)  # noqa: E731
+    doc = {"name": scan.name, "root": rel(scan.root), "format": scan.format, "width": scan.width,
+           "height": scan.height, "depth_width": scan.depth_width, "depth_height": scan.depth_height,
+           "depth_scale": scan.depth_scale, "depth_registered": scan.depth_registered,
+           "up_w": [float(x) for x in scan.up_w], "mesh_path": rel(scan.mesh_path),
+           "color_paths": [rel(p) for p in scan.color_paths], "depth_paths": [rel(p) for p in scan.depth_paths],
+           "num_frames": scan.num_frames, "meta": scan.meta,
+           "units": "metres; poses camera-to-world, OpenCV camera axes; K at colour resolution"}
+    atomic_write_json(out_dir / SCAN_JSON, doc)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Loading API
+# ---------------------------------------------------------------------------------------------------
+
+def list_scenes(run_dir: str | Path) -> list[str]:
+    """Names of the scenes ingested into ``run_dir`` (sorted)."""
+    root = Path(run_dir) / "ingest"
+    if not root.is_dir():
+        return []
+    return sorted(p.parent.name for p in root.glob(f"*/{SCAN_JSON}") if p.parent.name not in RESERVED)
+
+
+def load_scan(run_dir: str | Path, scene: str) -> Scan:
+    """The :class:`Scan` that ingest wrote for ``scene``."""
+    d = Path(run_dir) / "ingest" / scene
+    if not (d / SCAN_JSON).is_file():
+        raise UserError(f"{d / SCAN_JSON} is missing: scene {scene!r} was not ingested into {run_dir}; "
+                        f"run 'scansynth ingest {run_dir}' (scenes there: {', '.join(list_scenes(run_dir)) or 'none'})")
+    doc = read_json(d / SCAN_JSON)
+    a = load_npz(d / FRAMES_NPZ)
+    ab = lambda p: _absolute(p, d)  # noqa: E731
+    return Scan(name=doc["name"], root=ab(doc["root"]), format=doc["format"], frame_ids=a["frame_ids"],
+                color_paths=tuple(ab(p) for p in doc["color_paths"]),
+                depth_paths=tuple(ab(p) for p in doc["depth_paths"]),
+                width=int(doc["width"]), height=int(doc["height"]), K=a["K"], T_c2w=a["T_c2w"],
+                depth_width=int(doc["depth_width"]), depth_height=int(doc["depth_height"]),
+                depth_K=a["depth_K"], depth_scale=float(doc["depth_scale"]),
+                depth_registered=bool(doc["depth_registered"]), up_w=np.asarray(doc["up_w"], dtype=np.float64),
+                mesh_path=ab(doc["mesh_path"]), meta=doc["meta"])
+
+
+def load_objects(run_dir: str | Path) -> list[ObjectModel]:
+    """The normalised object library that ingest wrote (sorted by id)."""
+    from pipeline.objects import load_saved_library
+
+    return load_saved_library(Path(run_dir) / "ingest" / OBJECTS_KEY)
+
+
+def load_room_mesh(scan: Scan) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The room mesh of an ingested scan.
+
+    Returns
+    -------
+    vertices (V, 3) float64 metres world frame, faces (T, 3) int32, vertex colours (V, 3) uint8 or None.
+    """
+    if not Path(scan.mesh_path).is_file():
+        raise UserError(f"{scan.mesh_path}: room mesh is missing; re-run 'scansynth ingest'")
+    return read_room_ply(scan.mesh_path)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Stage
+# ---------------------------------------------------------------------------------------------------
+
+def plan(ctx: StageContext) -> list[Item]:
+    names = scene_names(ctx.cfg.scan.paths)
+    items = [Item(key=n, data={"path": p}) for n, p in zip(names, ctx.cfg.scan.paths)]
+    items.append(Item(key=OBJECTS_KEY, data={"paths": list(ctx.cfg.objects.paths)}))
+    return items
+
+
+def run_item(ctx: StageContext, item: Item) -> dict:
+    if item.key == OBJECTS_KEY:
+        from pipeline.objects import load_library, save_library
+
+        models = load_library(tuple(item.data["paths"]), ctx.cfg.objects.scale)
+        save_library(ctx.stage_dir / OBJECTS_KEY, models)
+        return {"objects": len(models), "ids": [m.obj_id for m in models]}
+    path = item.data["path"]
+    if path.startswith(BUILTIN_PREFIX):
+        path = str(_builtin_scan(path[len(BUILTIN_PREFIX):], ctx.run_dir))
+    scan = ingest_scan(path, item.key, ctx.stage_dir / item.key, ctx.cfg)
+    return {"scene": scan.name, "format": scan.format, "frames": scan.num_frames,
+            "skipped": scan.meta.get("skipped", {}), "mesh": scan.meta["mesh"],
+            "mesh_faces": scan.meta["mesh_faces"], "up_source": scan.meta["up_source"]}
+
+
+STAGE = Stage("ingest", plan, run_item)
