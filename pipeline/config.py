@@ -104,6 +104,8 @@ class IngestConfig:
     tsdf_trunc: float = option(0.08, "TSDF truncation distance, metres", min=0.0, min_exclusive=True)
     depth_max: float = option(4.0, "ignore depth beyond this distance during fusion, metres",
                               min=0.0, min_exclusive=True)
+    min_component_faces: int = option(0, "drop reconstructed mesh pieces with fewer triangles than this; "
+                                      "0 = keep all", min=0)
 
 
 @dataclass(frozen=True)
