@@ -6,3 +6,10 @@ Stages import these instead of writing numbers inline, so a tolerance is changed
 # Rigid transforms read from files: |R^T R - I| and |det R - 1| allowed (float text rounding in
 # 7-Scenes/ScanNet pose files reaches ~1e-5; a real scaling or shear is far larger).
 POSE_ORTHONORMAL_TOL = 1e-3
+
+# Raster passes against an independent ray caster on the same posed meshes (issue 8): both sample the
+# exact pixel centres, so only pixels whose centre lies within float rounding of an edge may differ.
+RASTER_MASK_IOU_MIN = 0.995
+# Median |raster depth - ray-cast depth| in metres: the 24-bit depth buffer resolves ~0.1 mm at 4 m
+# with znear = 1 cm; 1 mm leaves room for float32 vertex transforms.
+RASTER_DEPTH_MEDIAN_M = 1e-3

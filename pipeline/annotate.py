@@ -1,0 +1,318 @@
+"""Annotations from raster passes: pure NumPy, no renderer.
+
+Everything here works on arrays a renderer produced (metric z-depth per instance, the room's depth,
+the real sensor depth) and returns masks, labels, boxes and pixel counts with the meaning BOP gives
+them (bop_toolkit ``scripts/calc_gt_info.py``):
+
+- ``px_count_all``: pixels of the whole silhouette of the object alone, including the part outside
+  the image (counted on a canvas three times the image size in each direction, as BOP does);
+- ``px_count_valid``: silhouette pixels inside the image with a valid depth in the written depth image;
+- ``px_count_visib``: pixels where the object is the nearest surface (of objects, room and real depth);
+- ``visib_fract = px_count_visib / px_count_all`` (0 when ``px_count_all`` is 0);
+- ``bbox_obj``: ``[x, y, w, h]`` of the whole silhouette, not clipped to the image; ``bbox_visib``:
+  of the visible pixels; both ``[-1, -1, -1, -1]`` when nothing is visible.
+
+Pixel centres are at integer coordinates (OpenCV): pixel ``(r, c)`` samples ``u = c, v = r``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+NO_BOX = (-1, -1, -1, -1)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Poses and projection bounds
+# ---------------------------------------------------------------------------------------------------
+
+def rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(4, 4) float64 rigid transform from a (3, 3) rotation and a (3,) translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def poses_m2c(T_c2w: np.ndarray, R_m2w: np.ndarray, t_m2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-from-model poses of N instances.
+
+    Parameters
+    ----------
+    T_c2w : (4, 4) float64
+        Camera-to-world, metres, OpenCV axes.
+    R_m2w : (N, 3, 3) float64
+    t_m2w : (N, 3) float64, metres
+
+    Returns
+    -------
+    R_m2c : (N, 3, 3) float64
+    t_m2c : (N, 3) float64, metres
+    """
+    T_w2c = np.linalg.inv(np.asarray(T_c2w, dtype=np.float64))
+    R_w2c, t_w2c = T_w2c[:3, :3], T_w2c[:3, 3]
+    R_m2c = np.einsum("ij,njk->nik", R_w2c, np.asarray(R_m2w, dtype=np.float64))
+    t_m2c = np.asarray(t_m2w, dtype=np.float64) @ R_w2c.T + t_w2c
+    return R_m2c, t_m2c
+
+
+def canvas(width: int, height: int) -> tuple[int, int, int, int]:
+    """``(x0, y0, x1, y1)`` of the BOP counting canvas: the image plus one image size on every side."""
+    return (-width, -height, 2 * width, 2 * height)
+
+
+def projected_window(K: np.ndarray, R_m2c: np.ndarray, t_m2c: np.ndarray, points: np.ndarray,
+                     width: int, height: int, znear: float) -> tuple[int, int, int, int] | None:
+    """Pixel window that contains every pixel centre the posed model can cover, clipped to the canvas.
+
+    Parameters
+    ----------
+    K : (3, 3) float64
+        Intrinsics, pixels.
+    R_m2c, t_m2c : (3, 3), (3,) float64
+        Camera-from-model pose, metres.
+    points : (P, 3) float64
+        Model vertices (or any set whose convex hull contains the model), metres.
+    width, height : int
+        Image size, pixels.
+    znear : float
+        Near clip plane of the renderer, metres.
+
+    Returns
+    -------
+    (x0, y0, x1, y1) or None
+        Half-open pixel ranges ``[x0, x1) x [y0, y1)`` within :func:`canvas`; None when the model is
+        entirely behind the near plane or outside the canvas. When part of the model crosses the near
+        plane the projection is unbounded and the whole canvas is returned.
+    """
+    p = np.asarray(points, dtype=np.float64) @ np.asarray(R_m2c).T + np.asarray(t_m2c).reshape(3)
+    z = p[:, 2]
+    cx0, cy0, cx1, cy1 = canvas(width, height)
+    if not np.any(z > znear):
+        return None
+    if np.any(z <= znear):
+        return (cx0, cy0, cx1, cy1)
+    u = K[0, 0] * p[:, 0] / z + K[0, 2]
+    v = K[1, 1] * p[:, 1] / z + K[1, 2]
+    # Pixel c covers centre u = c; one pixel of margin for rounding in the rasterizer.
+    x0 = max(cx0, math.ceil(u.min()) - 1)
+    x1 = min(cx1, math.floor(u.max()) + 2)
+    y0 = max(cy0, math.ceil(v.min()) - 1)
+    y1 = min(cy1, math.floor(v.max()) + 2)
+    if x0 >= x1 or y0 >= y1:
+        return None
+    return (int(x0), int(y0), int(x1), int(y1))
+
+
+def window_area_in_image(window: tuple[int, int, int, int] | None, width: int, height: int) -> int:
+    """Pixels of ``window`` inside the image (0 for None)."""
+    if window is None:
+        return 0
+    x0, y0, x1, y1 = window
+    return max(0, min(x1, width) - max(x0, 0)) * max(0, min(y1, height) - max(y0, 0))
+
+
+def outside_tiles(window: tuple[int, int, int, int] | None, width: int,
+                  height: int) -> list[tuple[int, int]]:
+    """Origins of the image-sized canvas tiles other than the image itself that ``window`` touches.
+
+    Rendering these tiles at the image's own size (no framebuffer resize) counts the silhouette's
+    truncated part for ``px_count_all``.
+    """
+    if window is None:
+        return []
+    x0, y0, x1, y1 = window
+    out = []
+    for ty in (-1, 0, 1):
+        for tx in (-1, 0, 1):
+            if tx == 0 and ty == 0:
+                continue
+            ox, oy = tx * width, ty * height
+            if x0 < ox + width and x1 > ox and y0 < oy + height and y1 > oy:
+                out.append((ox, oy))
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------
+# Masks and labels
+# ---------------------------------------------------------------------------------------------------
+
+def compose_front(depths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nearest instance at each pixel from per-instance depth maps (each object rendered alone).
+
+    Parameters
+    ----------
+    depths : (N, H, W) float32
+        Metres; 0 where the instance does not cover the pixel.
+
+    Returns
+    -------
+    depth : (H, W) float32
+        Depth of the nearest instance, 0 where none.
+    front : (H, W) uint16
+        Index + 1 of the nearest instance (the lowest index wins exact ties), 0 where none.
+    """
+    n, h, w = depths.shape
+    if n >= np.iinfo(np.uint16).max:
+        raise ValueError(f"{n} instances: at most {np.iinfo(np.uint16).max - 1} fit uint16 labels")
+    if n == 0:
+        return np.zeros((h, w), np.float32), np.zeros((h, w), np.uint16)
+    d = np.where(depths > 0, depths, np.inf)
+    idx = np.argmin(d, axis=0)
+    depth = np.take_along_axis(d, idx[None], axis=0)[0]
+    hit = np.isfinite(depth)
+    front = np.where(hit, idx + 1, 0).astype(np.uint16)
+    return np.where(hit, depth, 0).astype(np.float32), front
+
+
+def real_depth_tolerance(depth: np.ndarray, tol_abs: float, tol_rel: float) -> np.ndarray:
+    """How much nearer (metres) the real depth must be than the object's to occlude it."""
+    return tol_abs + tol_rel * depth
+
+
+@dataclass(frozen=True)
+class Visibility:
+    """Result of :func:`visible_labels`."""
+
+    labels: np.ndarray          # (H, W) uint16, visible instance index + 1, 0 = none
+    occluded_by_room: np.ndarray  # (H, W) bool, object pixels behind the room mesh
+    occluded_by_real: np.ndarray  # (H, W) bool, object pixels in front of the room mesh but behind real depth
+
+
+def visible_labels(depth: np.ndarray, front: np.ndarray, scene_depth: np.ndarray,
+                   real_depth: np.ndarray | None, *, tol_abs: float, tol_rel: float) -> Visibility:
+    """Visible-instance label map: object pixels in front of the room and of the real depth.
+
+    Parameters
+    ----------
+    depth, front : (H, W) float32, (H, W) uint16
+        From :func:`compose_front`.
+    scene_depth : (H, W) float32
+        Depth of the room mesh, metres, 0 where the room was not hit.
+    real_depth : (H, W) float32 or None
+        Real sensor depth at the render resolution, metres, 0 = invalid; None = no fusion.
+    tol_abs, tol_rel : float
+        The real depth occludes where it is valid and nearer than the object's depth by more than
+        ``tol_abs + tol_rel * depth`` metres (sensor noise and misregistration must not eat objects
+        resting on real surfaces).
+    """
+    obj = front > 0
+    by_room = obj & (scene_depth > 0) & (scene_depth < depth)
+    if real_depth is None:
+        by_real = np.zeros_like(obj)
+    else:
+        tol = real_depth_tolerance(depth, tol_abs, tol_rel)
+        by_real = obj & ~by_room & (real_depth > 0) & (real_depth < depth - tol)
+    labels = np.where(obj & ~by_room & ~by_real, front, 0).astype(np.uint16)
+    return Visibility(labels=labels, occluded_by_room=by_room, occluded_by_real=by_real)
+
+
+def compose_depth(labels: np.ndarray, depth: np.ndarray, background: np.ndarray | None) -> np.ndarray:
+    """Depth image of the composite: the objects' depth where visible, ``background`` elsewhere.
+
+    Parameters
+    ----------
+    labels : (H, W) uint16
+        Visible instance labels.
+    depth : (H, W) float32
+        Nearest object depth, metres.
+    background : (H, W) float32 or None
+        Real (or room) depth, metres, 0 = invalid; None = zeros.
+    """
+    bg = np.zeros_like(depth) if background is None else background.astype(np.float32)
+    return np.where(labels > 0, depth, bg).astype(np.float32)
+
+
+def bbox_xywh(mask: np.ndarray, x_off: int = 0, y_off: int = 0) -> tuple[int, int, int, int] | None:
+    """``(x, y, w, h)`` of the True pixels of ``mask`` shifted by the mask's origin; None if empty."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(mask.any(axis=0))
+    return (int(cols[0] + x_off), int(rows[0] + y_off), int(cols[-1] - cols[0] + 1),
+            int(rows[-1] - rows[0] + 1))
+
+
+def union_box(a: tuple[int, int, int, int] | None,
+              b: tuple[int, int, int, int] | None) -> tuple[int, int, int, int] | None:
+    """Smallest ``(x, y, w, h)`` box containing both (None = empty)."""
+    if a is None:
+        return b
+    if b is None:
+        return a
+    x0, y0 = min(a[0], b[0]), min(a[1], b[1])
+    x1, y1 = max(a[0] + a[2], b[0] + b[2]), max(a[1] + a[3], b[1] + b[3])
+    return (x0, y0, x1 - x0, y1 - y0)
+
+
+def pack_masks(masks: np.ndarray) -> np.ndarray:
+    """(N, H, W) bool -> (N, H, ceil(W/8)) uint8 bit-packed along rows."""
+    return np.packbits(masks.astype(bool), axis=-1)
+
+
+def unpack_masks(packed: np.ndarray, width: int) -> np.ndarray:
+    """Inverse of :func:`pack_masks`: (N, H, ceil(W/8)) uint8 -> (N, H, W) bool."""
+    return np.unpackbits(packed, axis=-1, count=width).astype(bool)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Per-instance annotations
+# ---------------------------------------------------------------------------------------------------
+
+def instance_annotations(*, obj_ids: np.ndarray, R_m2c: np.ndarray, t_m2c: np.ndarray,
+                         amodal: np.ndarray, px_outside: np.ndarray, box_outside: list,
+                         labels: np.ndarray, valid_depth: np.ndarray,
+                         visib_threshold: float) -> list[dict]:
+    """BOP ``scene_gt`` + ``scene_gt_info`` entries of every instance (metres; mm only in the writer).
+
+    Parameters
+    ----------
+    obj_ids : (N,) int
+    R_m2c, t_m2c : (N, 3, 3), (N, 3) float64
+        Camera-from-model poses, metres.
+    amodal : (N, H, W) bool
+        Silhouette of each object alone, inside the image.
+    px_outside : (N,) int
+        Silhouette pixels outside the image (on the BOP canvas).
+    box_outside : list of N ``(x, y, w, h)`` or None
+        Box of the silhouette part outside the image, image pixel coordinates.
+    labels : (H, W) uint16
+        Visible instance labels.
+    valid_depth : (H, W) bool
+        Pixels with a valid depth in the written depth image.
+    visib_threshold : float
+        An instance counts as visible (``"visible": true``) from this visible fraction on.
+
+    Returns
+    -------
+    list of dict
+        Keys: ``inst_id, obj_id, R_m2c, t_m2c, bbox_obj, bbox_visib, px_count_all, px_count_valid,
+        px_count_visib, visib_fract, visible``.
+    """
+    out = []
+    for i in range(len(obj_ids)):
+        m = amodal[i]
+        vis = labels == i + 1
+        px_in = int(m.sum())
+        px_all = px_in + int(px_outside[i])
+        px_visib = int(vis.sum())
+        fract = px_visib / px_all if px_all > 0 else 0.0
+        box_obj = union_box(bbox_xywh(m), box_outside[i]) if px_visib > 0 else None
+        box_vis = bbox_xywh(vis) if px_visib > 0 else None
+        out.append({
+            "inst_id": i,
+            "obj_id": int(obj_ids[i]),
+            "R_m2c": np.asarray(R_m2c[i], dtype=np.float64).tolist(),
+            "t_m2c": np.asarray(t_m2c[i], dtype=np.float64).tolist(),
+            "bbox_obj": list(box_obj or NO_BOX),
+            "bbox_visib": list(box_vis or NO_BOX),
+            "px_count_all": px_all,
+            "px_count_valid": int((m & valid_depth).sum()),
+            "px_count_visib": px_visib,
+            "visib_fract": float(fract),
+            "visible": bool(px_visib > 0 and fract >= visib_threshold),
+        })
+    return out

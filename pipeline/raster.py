@@ -1,0 +1,523 @@
+"""Raster passes and annotations: what the camera sees of the dropped objects, per frame.
+
+For each (scene, drop, frame) item:
+
+1. Camera-from-model poses of the instances; each instance's projected window (from its vertices).
+   **Early rejection** before any rendering: when even the sum of the windows' areas inside the image
+   is below ``raster.min_visible_area`` of the image, the frame cannot reach it and is rejected.
+2. **Object passes**: each instance alone (amodal depth, so amodal masks and the object depth/label
+   composition come from the same rasterization), plus the parts of its silhouette outside the image
+   (for BOP's ``px_count_all``). Nearest instance per pixel -> object depth and front labels (uint16:
+   no 255-object limit). Second rejection check on the amodal union, before the room pass.
+3. **Scene depth**: the room mesh's depth at the frame, rendered once per frame and cached on disk
+   (``RUN/raster/<scene>/scene_depth/f<frame:06d>.npz``), shared by every drop.
+4. **Occlusion**: object pixels behind the room are hidden; with ``raster.real_depth_fusion`` the real
+   sensor depth also hides them where it is valid and nearer by more than a tolerance (thin parts
+   such as chair legs are often missing from scan meshes). Third rejection check on visible pixels.
+5. **Annotations** (:mod:`pipeline.annotate`): poses, boxes, pixel counts, visible fractions.
+
+Outputs: ``RUN/raster/<scene>/drop<NNNN>/f<frame:06d>.npz`` with ``depth`` (H, W) float32 metres (the
+nearest object's depth, 0 = no object), ``labels`` (H, W) uint16 (visible instance index + 1, 0 = none)
+and ``amodal`` (N, H, ceil(W/8)) uint8 (bit-packed amodal masks, :func:`pipeline.annotate.unpack_masks`);
+and ``f<frame:06d>.json`` with the camera and the per-instance annotations (metres). A rejected frame
+has only its JSON, with ``"status": "rejected"`` and the reason. ``frame`` is the index into the
+Scan's arrays; ``frame_id`` in the JSON is the scan's own number.
+
+Poses without physics: ``raster.poses = "poses.json"`` renders chosen poses instead of the simulate
+stage's drops. Schema (one object, or a list of them)::
+
+    {"scene": "kitchen",              # Scan.name
+     "drop": 0,                       # drop index (output folder drop0000)
+     "frames": [0, 5],                # optional: frame indices to render (default: selection / all)
+     "instances": [{"obj_id": 1,                       # library id
+                    "R_m2w": [[1,0,0],[0,1,0],[0,0,1]], # model-to-world rotation
+                    "t_m2w": [0.1, 0.2, 0.0]}]}        # model-to-world translation, metres
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from pipeline import annotate
+from pipeline.config import RasterConfig
+from pipeline.errors import InputError
+from pipeline.io import atomic_save_npz, atomic_write_json, load_npz, read_json
+from pipeline.runner import Item, Stage, StageContext
+from pipeline.tolerances import POSE_ORTHONORMAL_TOL
+from pipeline.types import ObjectModel, Placement, Scan
+
+log = logging.getLogger(__name__)
+
+SCENE_DEPTH_DIR = "scene_depth"
+
+
+# ---------------------------------------------------------------------------------------------------
+# Paths
+# ---------------------------------------------------------------------------------------------------
+
+def frame_stem(run_dir: str | Path, scene: str, drop: int, frame: int) -> Path:
+    """``RUN/raster/<scene>/drop<NNNN>/f<frame:06d>`` (add ``.npz`` / ``.json``)."""
+    return Path(run_dir) / "raster" / scene / f"drop{drop:04d}" / f"f{frame:06d}"
+
+
+def scene_depth_path(run_dir: str | Path, scene: str, frame: int) -> Path:
+    """Cache file of the room's depth at a frame."""
+    return Path(run_dir) / "raster" / scene / SCENE_DEPTH_DIR / f"f{frame:06d}.npz"
+
+
+# ---------------------------------------------------------------------------------------------------
+# Camera
+# ---------------------------------------------------------------------------------------------------
+
+def scaled_camera(K: np.ndarray, width: int, height: int, scale: float) -> tuple[np.ndarray, int, int]:
+    """Intrinsics and size of the render at ``scale`` times the image resolution.
+
+    Pixel centres stay consistent: a point at OpenCV pixel ``u`` maps to ``(u + 0.5) * s - 0.5``.
+
+    Returns
+    -------
+    K : (3, 3) float64, width : int, height : int
+    """
+    w, h = int(round(width * scale)), int(round(height * scale))
+    sx, sy = w / width, h / height
+    Ks = np.array(K, dtype=np.float64)
+    Ks[0, 0] *= sx
+    Ks[1, 1] *= sy
+    Ks[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+    Ks[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return Ks, w, h
+
+
+def resize_nearest(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Nearest-neighbour resize (depth must not be interpolated across edges)."""
+    if image.shape[1] == width and image.shape[0] == height:
+        return image
+    import cv2
+
+    return cv2.resize(image, (width, height), interpolation=cv2.INTER_NEAREST)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Meshes in the rasterizer
+# ---------------------------------------------------------------------------------------------------
+
+def object_mesh_key(obj: ObjectModel) -> str:
+    """Rasterizer key of an object model: its id and a digest of its geometry."""
+    h = hashlib.blake2b(digest_size=8)
+    h.update(np.ascontiguousarray(obj.vertices, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(obj.faces, dtype=np.int64).tobytes())
+    return f"obj{obj.obj_id}-{h.hexdigest()}"
+
+
+def ensure_objects(rasterizer, objects: Sequence[ObjectModel]) -> dict[int, str]:
+    """Upload the object models the rasterizer does not hold yet; ``{obj_id: mesh key}``."""
+    keys = {}
+    for obj in objects:
+        key = object_mesh_key(obj)
+        if not rasterizer.has_mesh(key):
+            rasterizer.add_mesh(key, obj.vertices, obj.faces)
+        keys[int(obj.obj_id)] = key
+    return keys
+
+
+# ---------------------------------------------------------------------------------------------------
+# One frame
+# ---------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class FrameResult:
+    """Passes and annotations of one frame of one drop."""
+
+    status: str                     # "ok" | "rejected"
+    reason: str                     # why rejected ("" when ok)
+    check: str                      # rejection check: "bound" | "amodal" | "visible" | ""
+    width: int
+    height: int
+    K: np.ndarray                   # (3, 3) float64, intrinsics at the render resolution
+    T_c2w: np.ndarray               # (4, 4) float64
+    instances: list = field(default_factory=list)  # per-instance annotation dicts (pipeline.annotate)
+    depth: np.ndarray | None = None    # (H, W) float32, nearest object depth, metres, 0 = none
+    labels: np.ndarray | None = None   # (H, W) uint16, visible instance index + 1
+    amodal: np.ndarray | None = None   # (N, H, W) bool, silhouettes inside the image
+    stats: dict = field(default_factory=dict)  # pixel counts: objects, occluded by room / real depth
+
+
+def render_frame(rasterizer, *, K: np.ndarray, T_c2w: np.ndarray, width: int, height: int,
+                 placement: Placement, mesh_keys: dict[int, str],
+                 scene_depth: Callable[[], np.ndarray], real_depth: Callable[[], np.ndarray | None],
+                 cfg: RasterConfig) -> FrameResult:
+    """All raster passes and annotations of one frame.
+
+    Parameters
+    ----------
+    rasterizer : pipeline.render_gl.MeshRasterizer
+        Holds the object meshes under ``mesh_keys``.
+    K : (3, 3) float64
+        Intrinsics at the render resolution (``width`` x ``height``), OpenCV convention.
+    T_c2w : (4, 4) float64
+        Camera-to-world, metres.
+    placement : Placement
+        Instances to render (world poses).
+    mesh_keys : dict
+        ``obj_id -> rasterizer mesh key``.
+    scene_depth : callable
+        Returns the room's (H, W) float32 depth (0 = no hit); called only when the frame survives the
+        object passes (so the cache is filled only for frames that need it).
+    real_depth : callable
+        Returns the real sensor depth (H, W) float32 metres at the render resolution (0 = invalid), or
+        None when the frame has none; called only with ``cfg.real_depth_fusion``.
+    cfg : RasterConfig
+    """
+    K = np.asarray(K, dtype=np.float64)
+    T_c2w = np.asarray(T_c2w, dtype=np.float64)
+    n = len(placement.obj_ids)
+    area = float(width * height)
+    R_m2c, t_m2c = annotate.poses_m2c(T_c2w, placement.R_m2w, placement.t_m2w)
+    base = dict(width=width, height=height, K=K, T_c2w=T_c2w)
+
+    def reject(check: str, reason: str, **extra) -> FrameResult:
+        return FrameResult(status="rejected", reason=reason, check=check, stats=extra, **base)
+
+    windows = [annotate.projected_window(K, R_m2c[i], t_m2c[i],
+                                         rasterizer.mesh_vertices(mesh_keys[int(placement.obj_ids[i])]),
+                                         width, height, rasterizer.znear) for i in range(n)]
+    bound = sum(annotate.window_area_in_image(w, width, height) for w in windows) / area
+    if bound < cfg.min_visible_area:
+        return reject("bound", f"objects project onto at most {bound:.2%} of the image "
+                               f"(< raster.min_visible_area = {cfg.min_visible_area:.2%})", bound_share=bound)
+
+    depths = np.zeros((n, height, width), np.float32)
+    px_outside = np.zeros(n, np.int64)
+    box_outside: list = [None] * n
+    for i in range(n):
+        if windows[i] is None:
+            continue
+        T_m2w = annotate.rigid(placement.R_m2w[i], placement.t_m2w[i])
+        inst = [(mesh_keys[int(placement.obj_ids[i])], T_m2w)]
+        if annotate.window_area_in_image(windows[i], width, height) > 0:
+            depths[i] = rasterizer.render_depth(K, T_c2w, width, height, inst)
+        for ox, oy in annotate.outside_tiles(windows[i], width, height):
+            tile = rasterizer.render_depth(K, T_c2w, width, height, inst, x0=ox, y0=oy) > 0
+            px_outside[i] += int(tile.sum())
+            box_outside[i] = annotate.union_box(box_outside[i], annotate.bbox_xywh(tile, ox, oy))
+    depth, front = annotate.compose_front(depths)
+    amodal = depths > 0
+    obj_px = int((front > 0).sum())
+    if obj_px / area < cfg.min_visible_area:
+        return reject("amodal", f"objects cover {obj_px / area:.2%} of the image before occlusion "
+                                f"(< raster.min_visible_area = {cfg.min_visible_area:.2%})", object_px=obj_px)
+
+    room = scene_depth()
+    real = real_depth() if cfg.real_depth_fusion else None
+    vis = annotate.visible_labels(depth, front, room, real, tol_abs=cfg.fusion_tol_abs,
+                                  tol_rel=cfg.fusion_tol_rel)
+    labels = vis.labels
+    stats = {"object_px": obj_px, "occluded_by_room_px": int(vis.occluded_by_room.sum()),
+             "occluded_by_real_px": int(vis.occluded_by_real.sum()), "visible_px": int((labels > 0).sum())}
+    if stats["visible_px"] / area < cfg.min_visible_area:
+        return reject("visible", f"visible object pixels cover {stats['visible_px'] / area:.2%} of the image "
+                                 f"(< raster.min_visible_area = {cfg.min_visible_area:.2%})", **stats)
+    background = real if real is not None else room
+    valid = (labels > 0) | (background > 0)
+    inst = annotate.instance_annotations(obj_ids=placement.obj_ids, R_m2c=R_m2c, t_m2c=t_m2c, amodal=amodal,
+                                         px_outside=px_outside, box_outside=box_outside, labels=labels,
+                                         valid_depth=valid, visib_threshold=cfg.visib_threshold)
+    return FrameResult(status="ok", reason="", check="", instances=inst, depth=depth, labels=labels,
+                       amodal=amodal, stats=stats, **base)
+
+
+def frame_doc(result: FrameResult, *, scene: str, drop: int, frame: int, frame_id: int,
+              fusion: bool) -> dict:
+    """JSON annotation document of a frame (metres, OpenCV camera)."""
+    return {"scene": scene, "drop": int(drop), "frame": int(frame), "frame_id": int(frame_id),
+            "status": result.status, "reason": result.reason, "check": result.check,
+            "width": result.width, "height": result.height, "K": result.K.tolist(),
+            "T_c2w": result.T_c2w.tolist(), "real_depth_fusion": bool(fusion),
+            "visible_share": (result.stats.get("visible_px", 0) / (result.width * result.height)),
+            "stats": result.stats, "instances": result.instances}
+
+
+def save_frame(stem: str | Path, result: FrameResult, doc: dict) -> None:
+    """Write ``<stem>.npz`` (ok frames only) then ``<stem>.json``, each atomically."""
+    stem = Path(stem)
+    if result.status == "ok":
+        atomic_save_npz(stem.with_suffix(".npz"), depth=result.depth, labels=result.labels,
+                        amodal=annotate.pack_masks(result.amodal))
+    atomic_write_json(stem.with_suffix(".json"), doc)
+
+
+def load_frame(stem: str | Path) -> tuple[dict, dict | None]:
+    """``(annotation doc, arrays)`` of a saved frame; arrays is None for a rejected frame.
+
+    The arrays dict has ``depth`` (H, W) float32, ``labels`` (H, W) uint16 and ``amodal`` (N, H, W) bool
+    (unpacked).
+    """
+    stem = Path(stem)
+    doc = read_json(stem.with_suffix(".json"))
+    if doc["status"] != "ok":
+        return doc, None
+    a = load_npz(stem.with_suffix(".npz"))
+    a["amodal"] = annotate.unpack_masks(a["amodal"], int(doc["width"]))
+    return doc, a
+
+
+# ---------------------------------------------------------------------------------------------------
+# Poses files
+# ---------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class PosesEntry:
+    """One placement read from a poses file, with optional frames to render."""
+
+    placement: Placement
+    frames: tuple[int, ...] | None
+
+
+def _matrix(path: Path, where: str, value, shape: tuple[int, ...]) -> np.ndarray:
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: {where} = {value!r} is not a numeric array of shape {shape}") from None
+    if a.shape != shape:
+        raise InputError(f"{path}: {where} has shape {a.shape}, expected {shape}")
+    if not np.all(np.isfinite(a)):
+        raise InputError(f"{path}: {where} contains NaN or inf")
+    return a
+
+
+def load_poses_file(path: str | Path, *, obj_ids: Sequence[int] | None = None,
+                    scenes: Sequence[str] | None = None) -> list[PosesEntry]:
+    """Read a poses file (schema in the module docstring).
+
+    Parameters
+    ----------
+    obj_ids, scenes
+        When given, every instance's ``obj_id`` and every ``scene`` must be among them.
+
+    Raises
+    ------
+    InputError
+        Unreadable JSON, a missing key, a non-rigid rotation, an unknown object or scene, or a
+        (scene, drop) given twice; the message names the file and the entry.
+    """
+    path = Path(path)
+    try:
+        raw = read_json(path)
+    except (OSError, ValueError) as e:
+        raise InputError(f"{path}: cannot read the poses file ({e}); it must be JSON "
+                         f"(schema in pipeline/raster.py)") from None
+    entries = raw if isinstance(raw, list) else [raw]
+    out, seen = [], set()
+    for k, e in enumerate(entries):
+        where = f"entry {k}"
+        if not isinstance(e, dict) or not {"scene", "drop", "instances"} <= set(e):
+            raise InputError(f"{path}: {where} must be an object with keys 'scene', 'drop', 'instances' "
+                             f"(and optionally 'frames'); got {str(e)[:80]}")
+        scene, drop = e["scene"], e["drop"]
+        if not isinstance(scene, str) or (scenes is not None and scene not in scenes):
+            raise InputError(f"{path}: {where}: scene {scene!r} is not an ingested scene "
+                             f"(scenes: {', '.join(scenes or [])})")
+        if isinstance(drop, bool) or not isinstance(drop, int) or drop < 0:
+            raise InputError(f"{path}: {where}: drop = {drop!r} must be an integer >= 0")
+        if (scene, drop) in seen:
+            raise InputError(f"{path}: {where}: scene {scene!r} drop {drop} appears twice")
+        seen.add((scene, drop))
+        ids, Rs, ts = [], [], []
+        if not isinstance(e["instances"], list):
+            raise InputError(f"{path}: {where}: 'instances' must be a list")
+        for j, inst in enumerate(e["instances"]):
+            w = f"{where} instance {j}"
+            if not isinstance(inst, dict) or not {"obj_id", "R_m2w", "t_m2w"} <= set(inst):
+                raise InputError(f"{path}: {w} must have 'obj_id', 'R_m2w' (3x3) and 't_m2w' (3, metres)")
+            oid = inst["obj_id"]
+            if isinstance(oid, bool) or not isinstance(oid, int) or (obj_ids is not None and oid not in obj_ids):
+                raise InputError(f"{path}: {w}: obj_id {oid!r} is not in the object library "
+                                 f"(ids: {', '.join(map(str, obj_ids or []))})")
+            R = _matrix(path, f"{w} R_m2w", inst["R_m2w"], (3, 3))
+            err = float(np.abs(R.T @ R - np.eye(3)).max())
+            det = float(np.linalg.det(R))
+            if err > POSE_ORTHONORMAL_TOL or abs(det - 1.0) > POSE_ORTHONORMAL_TOL:
+                raise InputError(f"{path}: {w}: R_m2w is not a rotation (|R^T R - I| = {err:.2e}, "
+                                 f"det = {det:.4f}); give an orthonormal matrix with det +1")
+            ids.append(oid)
+            Rs.append(R)
+            ts.append(_matrix(path, f"{w} t_m2w", inst["t_m2w"], (3,)))
+        frames = e.get("frames")
+        if frames is not None:
+            if not isinstance(frames, list) or not all(isinstance(f, int) and not isinstance(f, bool)
+                                                       and f >= 0 for f in frames):
+                raise InputError(f"{path}: {where}: 'frames' must be a list of frame indices >= 0")
+            frames = tuple(sorted(set(frames)))
+        n = len(ids)
+        pl = Placement(scene=scene, drop=drop, obj_ids=np.asarray(ids, dtype=np.int32).reshape(n),
+                       R_m2w=np.asarray(Rs, dtype=np.float64).reshape(n, 3, 3),
+                       t_m2w=np.asarray(ts, dtype=np.float64).reshape(n, 3),
+                       at_rest=np.ones(n, bool), max_penetration=0.0, verdict="accepted")
+        out.append(PosesEntry(placement=pl, frames=frames))
+    return out
+
+
+def save_poses_file(path: str | Path, placements: Sequence[Placement],
+                    frames: Sequence[Sequence[int] | None] | None = None) -> Path:
+    """Write placements as a poses file that :func:`load_poses_file` reads back."""
+    docs = []
+    for k, p in enumerate(placements):
+        d = {"scene": p.scene, "drop": int(p.drop),
+             "instances": [{"obj_id": int(o), "R_m2w": np.asarray(R).tolist(), "t_m2w": np.asarray(t).tolist()}
+                           for o, R, t in zip(p.obj_ids, p.R_m2w, p.t_m2w)]}
+        if frames is not None and frames[k] is not None:
+            d["frames"] = [int(f) for f in frames[k]]
+        docs.append(d)
+    return atomic_write_json(path, docs)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Stage
+# ---------------------------------------------------------------------------------------------------
+
+_DROP_RE = re.compile(r"^drop(\d+)\.json$")
+
+
+def _simulated_drops(run_dir: Path, scene: str) -> list[int]:
+    d = run_dir / "simulate" / scene
+    if not d.is_dir():
+        return []
+    return sorted(int(m.group(1)) for p in d.iterdir() if (m := _DROP_RE.match(p.name)))
+
+
+def _scene_frames(run_dir: Path, scan: Scan) -> list[int]:
+    sel = run_dir / "select" / scan.name / "selection.json"
+    if sel.is_file():
+        from pipeline.select import load_selection
+
+        return [int(f) for f in load_selection(run_dir, scan.name)]
+    return list(range(scan.num_frames))
+
+
+def _placements(ctx: StageContext, scene: str) -> list[tuple[Placement, tuple[int, ...] | None]]:
+    """Placements to render for ``scene``: from the poses file when configured, else the simulate stage."""
+    if ctx.cfg.raster.poses:
+        from pipeline.ingest import list_scenes, load_objects
+
+        entries = load_poses_file(ctx.cfg.raster.poses, obj_ids=[o.obj_id for o in load_objects(ctx.run_dir)],
+                                  scenes=list_scenes(ctx.run_dir))
+        return [(e.placement, e.frames) for e in entries if e.placement.scene == scene]
+    from pipeline.simulate import load_placement
+
+    out = []
+    for drop in _simulated_drops(ctx.run_dir, scene):
+        p = load_placement(ctx.run_dir, scene, drop)
+        if p.verdict != "accepted":
+            log.info("raster: %s drop %d skipped (simulate verdict %s)", scene, drop, p.verdict)
+            continue
+        out.append((p, None))
+    return out
+
+
+def plan(ctx: StageContext) -> list[Item]:
+    from pipeline.ingest import list_scenes, load_scan
+
+    items = []
+    for scene in list_scenes(ctx.run_dir):
+        scan = load_scan(ctx.run_dir, scene)
+        placements = _placements(ctx, scene)
+        if not placements:
+            log.warning("raster: scene %s has no accepted drop to render (run simulate, or set raster.poses)",
+                        scene)
+            continue
+        default_frames = _scene_frames(ctx.run_dir, scan)
+        for p, frames in placements:
+            fr = list(frames) if frames is not None else default_frames
+            bad = [f for f in fr if f >= scan.num_frames]
+            if bad:
+                raise InputError(f"{ctx.cfg.raster.poses}: scene {scene!r} drop {p.drop}: frames {bad[:5]} "
+                                 f"are beyond the scan's {scan.num_frames} frames")
+            for f in fr:
+                items.append(Item(key=f"{scene}/drop{p.drop:04d}/f{f:06d}",
+                                  data={"scene": scene, "drop": int(p.drop), "frame": int(f)}))
+    return items
+
+
+def _room_key(scan: Scan) -> str:
+    st = Path(scan.mesh_path).stat()
+    return f"room:{scan.mesh_path}:{st.st_size}:{st.st_mtime_ns}"
+
+
+def cached_scene_depth(run_dir: Path, scan: Scan, frame: int, K: np.ndarray, width: int, height: int,
+                       rasterizer) -> np.ndarray:
+    """The room's depth at ``frame``: read from the cache, or rendered and cached (atomically)."""
+    path = scene_depth_path(run_dir, scan.name, frame)
+    if path.is_file():
+        d = load_npz(path)["depth"]
+        if d.shape == (height, width):
+            return d
+    key = _room_key(scan)
+    if not rasterizer.has_mesh(key):
+        from pipeline.ingest import load_room_mesh
+
+        v, f, _ = load_room_mesh(scan)
+        rasterizer.add_mesh(key, v, f)
+    d = rasterizer.render_depth(K, scan.T_c2w[frame], width, height, [(key, np.eye(4))])
+    atomic_save_npz(path, depth=d)
+    return d
+
+
+def run_item(ctx: StageContext, item: Item) -> dict:
+    from pipeline.ingest import load_objects, load_scan, read_depth
+    from pipeline.render_gl import shared_rasterizer
+
+    cfg = ctx.cfg.raster
+    scene, drop, frame = item.data["scene"], item.data["drop"], item.data["frame"]
+    scan = load_scan(ctx.run_dir, scene)
+    placement = next((p for p, _ in _placements(ctx, scene) if p.drop == drop), None)
+    if placement is None:
+        raise InputError(f"scene {scene!r} drop {drop}: placement not found (was the poses file or the "
+                         f"simulate output changed after planning?)")
+    objects = {o.obj_id: o for o in load_objects(ctx.run_dir)}
+    missing = sorted(set(int(i) for i in placement.obj_ids) - set(objects))
+    if missing:
+        raise InputError(f"scene {scene!r} drop {drop}: object ids {missing} are not in the ingested library")
+    rasterizer = shared_rasterizer()
+    keys = ensure_objects(rasterizer, [objects[i] for i in sorted(set(int(i) for i in placement.obj_ids))])
+    K, w, h = scaled_camera(scan.K[frame], scan.width, scan.height, cfg.image_scale)
+
+    def real() -> np.ndarray | None:
+        if not scan.depth_paths[frame]:
+            return None
+        return resize_nearest(read_depth(scan, frame), w, h)
+
+    res = render_frame(rasterizer, K=K, T_c2w=scan.T_c2w[frame], width=w, height=h, placement=placement,
+                       mesh_keys=keys,
+                       scene_depth=lambda: cached_scene_depth(ctx.run_dir, scan, frame, K, w, h, rasterizer),
+                       real_depth=real, cfg=cfg)
+    doc = frame_doc(res, scene=scene, drop=drop, frame=frame, frame_id=int(scan.frame_ids[frame]),
+                    fusion=cfg.real_depth_fusion)
+    save_frame(frame_stem(ctx.run_dir, scene, drop, frame), res, doc)
+    return {"status": res.status, "check": res.check, "reason": res.reason,
+            "instances": len(res.instances), "visible": sum(i["visible"] for i in res.instances)}
+
+
+def finish(ctx: StageContext, results: dict[str, dict]) -> None:
+    """``RUN/raster/summary.json``: frames rendered and rejected, by rejection check."""
+    ok = sorted(k for k, r in results.items() if r.get("status") == "ok")
+    rejected = {k: r.get("reason", "") for k, r in sorted(results.items()) if r.get("status") == "rejected"}
+    by_check: dict[str, int] = {}
+    for r in results.values():
+        if r.get("status") == "rejected":
+            by_check[r.get("check", "")] = by_check.get(r.get("check", ""), 0) + 1
+    if rejected:
+        log.warning("raster: %d of %d frame(s) rejected (%s); reasons in %s", len(rejected), len(results),
+                    ", ".join(f"{c}: {n}" for c, n in sorted(by_check.items())), ctx.stage_dir / "summary.json")
+    atomic_write_json(ctx.stage_dir / "summary.json",
+                      {"frames": len(results), "ok": len(ok), "rejected": len(rejected),
+                       "rejected_by_check": by_check, "rejected_frames": rejected})
+
+
+STAGE = Stage("raster", plan, run_item, finish)

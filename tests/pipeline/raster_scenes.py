@@ -1,0 +1,149 @@
+"""Procedural scenes and an independent ray caster shared by the raster and export tests."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.types import ObjectModel, Placement
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """(4, 4) OpenCV camera-to-world pose at ``eye`` looking at ``target`` (z up in the world)."""
+    eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z], axis=1)
+    T[:3, 3] = eye
+    return T
+
+
+def intrinsics(width: int, height: int, f: float) -> np.ndarray:
+    return np.array([[f, 0.0, (width - 1) / 2 + 0.3], [0.0, f, (height - 1) / 2 - 0.2], [0.0, 0.0, 1.0]])
+
+
+def box_mesh(size, center=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    m = trimesh.creation.box(extents=size)
+    return np.asarray(m.vertices) + np.asarray(center), np.asarray(m.faces, dtype=np.int32)
+
+
+def merge(*meshes) -> tuple[np.ndarray, np.ndarray]:
+    vs, fs, off = [], [], 0
+    for v, f in meshes:
+        vs.append(v)
+        fs.append(f + off)
+        off += len(v)
+    return np.concatenate(vs), np.concatenate(fs).astype(np.int32)
+
+
+def room_mesh(with_legs: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """A 4 x 4 x 2.5 m room (floor, four walls, no ceiling) with a table; legs optional (thin parts)."""
+    parts = [box_mesh((4.0, 4.0, 0.02), (0, 0, -0.01)),
+             box_mesh((4.0, 0.02, 2.5), (0, 2.0, 1.25)), box_mesh((4.0, 0.02, 2.5), (0, -2.0, 1.25)),
+             box_mesh((0.02, 4.0, 2.5), (2.0, 0, 1.25)), box_mesh((0.02, 4.0, 2.5), (-2.0, 0, 1.25)),
+             box_mesh((0.8, 0.5, 0.04), (0.4, 0.3, 0.72))]
+    if with_legs:
+        for sx in (-1, 1):
+            for sy in (-1, 1):
+                parts.append(box_mesh((0.03, 0.03, 0.70), (0.4 + sx * 0.36, 0.3 + sy * 0.21, 0.35)))
+    return merge(*parts)
+
+
+def make_object(obj_id: int, kind: str) -> ObjectModel:
+    import trimesh
+
+    if kind == "sphere":
+        m = trimesh.creation.icosphere(subdivisions=3, radius=0.08)
+    elif kind == "box":
+        m = trimesh.creation.box(extents=(0.16, 0.10, 0.07))
+    elif kind == "torus":
+        m = trimesh.creation.torus(major_radius=0.07, minor_radius=0.025)
+    elif kind == "cylinder":
+        m = trimesh.creation.cylinder(radius=0.04, height=0.18, sections=32)
+    else:
+        raise ValueError(kind)
+    v = np.asarray(m.vertices, dtype=np.float64)
+    info = {"diameter": float(np.max(np.linalg.norm(v[:, None] - v[None], axis=-1))) if len(v) < 2000 else 0.0}
+    return ObjectModel(obj_id=obj_id, name=kind, source_path=f"/procedural/{kind}", vertices=v,
+                       faces=np.asarray(m.faces, dtype=np.int32),
+                       normals=np.asarray(m.vertex_normals, dtype=np.float32),
+                       vertex_colors=None, uv=None, texture=None, info=info)
+
+
+def rot(axis, angle) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis) * angle).as_matrix()
+
+
+def library() -> list[ObjectModel]:
+    return [make_object(1, "sphere"), make_object(2, "box"), make_object(3, "torus"), make_object(4, "cylinder")]
+
+
+def placement(scene: str = "room", drop: int = 0) -> Placement:
+    """Objects on the floor and on the table: two overlap, one is cut by the image border, one is behind a
+    table leg, one is under the table top."""
+    ids = [1, 2, 3, 4, 2, 1, 2]
+    Rs = [np.eye(3), rot((0, 0, 1), 0.6), rot((1, 0, 0), 1.2), rot((0, 1, 0), 1.5707963), rot((1, 1, 0), 0.4),
+          np.eye(3), rot((0, 0, 1), 1.2)]
+    ts = [(0.0, 0.0, 0.08), (0.12, 0.05, 0.035), (0.35, 0.25, 0.79), (-0.3, 0.3, 0.04), (0.45, 0.35, 0.05),
+          (-0.7, -0.32, 0.08), (0.05, 0.36, 0.035)]
+    n = len(ids)
+    return Placement(scene=scene, drop=drop, obj_ids=np.asarray(ids, np.int32), R_m2w=np.asarray(Rs),
+                     t_m2w=np.asarray(ts, dtype=np.float64), at_rest=np.ones(n, bool), max_penetration=0.0,
+                     verdict="accepted")
+
+
+def camera(width: int = 320, height: int = 240) -> tuple[np.ndarray, np.ndarray]:
+    """Intrinsics and pose seeing the objects; the last instance is cut by the image's left border."""
+    K = intrinsics(width, height, 0.9 * width)
+    T = look_at((0.1, -1.3, 1.1), (0.05, 0.2, 0.25))
+    return K, T
+
+
+def posed(obj: ObjectModel, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return obj.vertices @ np.asarray(R).T + np.asarray(t), obj.faces
+
+
+# ---------------------------------------------------------------------------------------------------
+# Independent reference: Open3D ray casting through OpenCV pixel centres
+# ---------------------------------------------------------------------------------------------------
+
+def raycast(meshes: list[tuple[np.ndarray, np.ndarray]], K: np.ndarray, T_c2w: np.ndarray, width: int,
+            height: int, x0: int = 0, y0: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Z-depth and mesh index (-1 = none) of the nearest hit at each pixel centre of the window."""
+    import warnings
+
+    with warnings.catch_warnings():  # "built with CUDA support, but no suitable CUDA devices found"
+        warnings.filterwarnings("ignore", message="Open3D was built with CUDA", category=ImportWarning)
+        import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    ids = []
+    for v, f in meshes:
+        ids.append(scene.add_triangles(o3d.core.Tensor(np.asarray(v, np.float32)),
+                                       o3d.core.Tensor(np.asarray(f, np.uint32))))
+    u, v = np.meshgrid(np.arange(x0, x0 + width, dtype=np.float64), np.arange(y0, y0 + height, dtype=np.float64))
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)  # z = 1
+    d_w = d_cam @ T_c2w[:3, :3].T
+    o_w = np.broadcast_to(T_c2w[:3, 3], d_w.shape)
+    rays = np.concatenate([o_w, d_w], axis=-1).reshape(-1, 6).astype(np.float32)
+    ans = scene.cast_rays(o3d.core.Tensor(rays))
+    t = ans["t_hit"].numpy().reshape(height, width)
+    gid = ans["geometry_ids"].numpy().reshape(height, width).astype(np.int64)
+    hit = np.isfinite(t)
+    lut = {int(g): i for i, g in enumerate(ids)}
+    idx = np.full((height, width), -1, np.int64)
+    for g, i in lut.items():
+        idx[hit & (gid == g)] = i
+    return np.where(hit, t, 0).astype(np.float32), idx
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    u = np.logical_or(a, b).sum()
+    return 1.0 if u == 0 else float(np.logical_and(a, b).sum() / u)

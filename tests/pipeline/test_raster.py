@@ -1,0 +1,271 @@
+"""Raster passes against an independent ray caster (Open3D), analytic silhouettes and the poses file."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from pipeline import annotate
+from pipeline.config import RasterConfig, build_config
+from pipeline.errors import InputError
+from pipeline.io import npz_bytes
+from pipeline.raster import (ensure_objects, frame_doc, load_frame, load_poses_file, render_frame, save_frame,
+                             save_poses_file, scaled_camera)
+from pipeline.tolerances import RASTER_DEPTH_MEDIAN_M, RASTER_MASK_IOU_MIN
+from pipeline.types import Placement
+from tests.pipeline import raster_scenes as S
+
+W, H = 320, 240
+
+
+@pytest.fixture(scope="module")
+def rasterizer():
+    from pipeline.render_gl import shared_rasterizer
+
+    return shared_rasterizer()
+
+
+@pytest.fixture(scope="module")
+def scene(rasterizer):
+    K, T = S.camera(W, H)
+    room = S.room_mesh(with_legs=True)
+    rasterizer.add_mesh("test-room-legs", *room)
+    objs = {o.obj_id: o for o in S.library()}
+    keys = ensure_objects(rasterizer, list(objs.values()))
+    pl = S.placement()
+    room_depth = rasterizer.render_depth(K, T, W, H, [("test-room-legs", np.eye(4))])
+    meshes = [room] + [S.posed(objs[int(o)], R, t) for o, R, t in zip(pl.obj_ids, pl.R_m2w, pl.t_m2w)]
+    return dict(K=K, T=T, room=room, objs=objs, keys=keys, pl=pl, room_depth=room_depth, meshes=meshes)
+
+
+def _render(rasterizer, sc, *, placement=None, room_depth=None, real=None, cfg=None, K=None, w=W, h=H):
+    return render_frame(rasterizer, K=sc["K"] if K is None else K, T_c2w=sc["T"], width=w, height=h,
+                        placement=sc["pl"] if placement is None else placement, mesh_keys=sc["keys"],
+                        scene_depth=lambda: sc["room_depth"] if room_depth is None else room_depth,
+                        real_depth=lambda: real, cfg=cfg or RasterConfig(real_depth_fusion=real is not None))
+
+
+def test_masks_and_depth_match_independent_ray_caster(rasterizer, scene):
+    res = _render(rasterizer, scene)
+    assert res.status == "ok", res.reason
+    ref_depth, ref_idx = S.raycast(scene["meshes"], scene["K"], scene["T"], W, H)
+    n = len(scene["pl"].obj_ids)
+    occluded_any = False
+    for i in range(n):
+        vis = res.labels == i + 1
+        ref_vis = ref_idx == i + 1
+        assert S.iou(vis, ref_vis) >= RASTER_MASK_IOU_MIN, f"instance {i} visible mask"
+        _, alone = S.raycast([scene["meshes"][i + 1]], scene["K"], scene["T"], W, H)
+        assert S.iou(res.amodal[i], alone == 0) >= RASTER_MASK_IOU_MIN, f"instance {i} amodal mask"
+        both = vis & ref_vis
+        if both.any():
+            assert np.median(np.abs(res.depth[both] - ref_depth[both])) <= RASTER_DEPTH_MEDIAN_M
+        occluded_any |= res.instances[i]["px_count_visib"] < res.amodal[i].sum()
+    assert occluded_any, "the test scene must contain occlusions"
+    # Room depth: the cached pass also matches.
+    room_d, room_i = S.raycast([scene["room"]], scene["K"], scene["T"], W, H)
+    assert S.iou(scene["room_depth"] > 0, room_i == 0) >= RASTER_MASK_IOU_MIN
+    hit = (scene["room_depth"] > 0) & (room_i == 0)
+    assert np.median(np.abs(scene["room_depth"][hit] - room_d[hit])) <= RASTER_DEPTH_MEDIAN_M
+
+
+def test_truncated_object_counts_its_outside_pixels_like_bop(rasterizer, scene):
+    res = _render(rasterizer, scene)
+    i = 5  # cut by the left image border
+    a = res.instances[i]
+    assert 0 < a["px_count_visib"] < a["px_count_all"]
+    x0, y0, x1, y1 = annotate.canvas(W, H)
+    _, alone = S.raycast([scene["meshes"][i + 1]], scene["K"], scene["T"], x1 - x0, y1 - y0, x0, y0)
+    sil = alone == 0
+    assert a["px_count_all"] == pytest.approx(sil.sum(), abs=2)
+    assert a["bbox_obj"][0] < 0  # BOP does not clip bbox_obj to the image
+    box = annotate.bbox_xywh(sil, x0, y0)
+    assert np.abs(np.subtract(a["bbox_obj"], box)).max() <= 1
+    assert a["visib_fract"] == pytest.approx(a["px_count_visib"] / a["px_count_all"])
+    assert a["bbox_visib"][0] == 0
+
+
+def test_sphere_silhouette_area_is_analytic(rasterizer):
+    obj = S.make_object(1, "sphere")
+    keys = ensure_objects(rasterizer, [obj])
+    K = np.array([[400.0, 0, 159.5], [0, 400.0, 119.5], [0, 0, 1]])
+    d = 1.0
+    pl = Placement(scene="s", drop=0, obj_ids=np.array([1], np.int32), R_m2w=np.eye(3)[None],
+                   t_m2w=np.array([[0.0, 0.0, d]]), at_rest=np.ones(1, bool), max_penetration=0.0,
+                   verdict="accepted")
+    res = render_frame(rasterizer, K=K, T_c2w=np.eye(4), width=W, height=H, placement=pl, mesh_keys=keys,
+                       scene_depth=lambda: np.zeros((H, W), np.float32), real_depth=lambda: None,
+                       cfg=RasterConfig(min_visible_area=0.0))
+    # Silhouette of the icosphere's circumscribed sphere: a disc of radius f r / sqrt(d^2 - r^2); the
+    # inscribed polyhedron covers a little less (subdivision 3: faces 1.2 % inside the sphere).
+    r = 0.08
+    disc = np.pi * (400.0 * r / np.sqrt(d * d - r * r)) ** 2
+    assert 0.96 * disc <= res.instances[0]["px_count_all"] <= disc
+    assert res.depth[res.labels > 0].min() == pytest.approx(d - r, abs=1e-3)
+
+
+def test_labels_are_uint16_beyond_255_instances(rasterizer):
+    obj = S.make_object(2, "box")
+    keys = ensure_objects(rasterizer, [obj])
+    n = 300
+    w, h = 160, 120
+    K = np.array([[150.0, 0, 79.5], [0, 150.0, 59.5], [0, 0, 1]])
+    xs, ys = np.meshgrid(np.linspace(-1.9, 1.9, 20), np.linspace(-1.4, 1.4, 15))
+    t = np.stack([xs.ravel(), ys.ravel(), np.full(n, 4.0)], axis=1)
+    pl = Placement(scene="s", drop=0, obj_ids=np.full(n, 2, np.int32), R_m2w=np.repeat(np.eye(3)[None], n, 0),
+                   t_m2w=t, at_rest=np.ones(n, bool), max_penetration=0.0, verdict="accepted")
+    res = render_frame(rasterizer, K=K, T_c2w=np.eye(4), width=w, height=h, placement=pl, mesh_keys=keys,
+                       scene_depth=lambda: np.zeros((h, w), np.float32), real_depth=lambda: None,
+                       cfg=RasterConfig())
+    assert res.labels.dtype == np.uint16
+    assert res.labels.max() == n
+    assert len(np.unique(res.labels)) == n + 1
+    assert all(a["px_count_visib"] > 0 for a in res.instances)
+
+
+def test_frames_without_visible_objects_are_rejected_early(rasterizer, scene):
+    calls = []
+
+    def room():
+        calls.append(1)
+        return scene["room_depth"]
+
+    def placed(t):
+        return dataclasses.replace(scene["pl"], obj_ids=scene["pl"].obj_ids[:1], R_m2w=scene["pl"].R_m2w[:1],
+                                   t_m2w=np.asarray([t], dtype=np.float64), at_rest=np.ones(1, bool))
+
+    def run(t, **kw):
+        return render_frame(rasterizer, K=scene["K"], T_c2w=scene["T"], width=W, height=H, placement=placed(t),
+                            mesh_keys=scene["keys"], scene_depth=room, real_depth=lambda: None,
+                            cfg=RasterConfig(**kw))
+
+    behind = scene["T"][:3, 3] - 1.0 * scene["T"][:3, 2]  # 1 m behind the camera
+    res = run(behind)
+    assert (res.status, res.check) == ("rejected", "bound") and not calls
+    # A sphere in view but small: the projection bound passes at 0.5 %, the rendered silhouette does not.
+    res = run((0.0, 0.0, 0.08), min_visible_area=0.009)
+    assert (res.status, res.check) == ("rejected", "amodal") and not calls
+    # Under the floor: rendered, but hidden by the room.
+    res = run((0.0, 0.0, -0.3), min_visible_area=0.001)
+    assert (res.status, res.check) == ("rejected", "visible") and calls
+    assert "raster.min_visible_area" in res.reason
+    doc = frame_doc(res, scene="s", drop=0, frame=3, frame_id=30, fusion=False)
+    assert doc["status"] == "rejected" and doc["instances"] == []
+
+
+def test_real_depth_fusion_restores_thin_occluders(rasterizer, scene):
+    """The scan mesh lacks the table legs; the real depth has them: fusion hides the object behind a leg."""
+    K, T = scene["K"], scene["T"]
+    room_nolegs = S.room_mesh(with_legs=False)
+    rasterizer.add_mesh("test-room-nolegs", *room_nolegs)
+    mesh_depth = rasterizer.render_depth(K, T, W, H, [("test-room-nolegs", np.eye(4))])
+    true = _render(rasterizer, scene)                       # room with legs = truth
+    noisy_real = scene["room_depth"] + np.random.default_rng(0).normal(0, 0.004, (H, W)).astype(np.float32)
+    noisy_real[scene["room_depth"] == 0] = 0
+    plain = _render(rasterizer, scene, room_depth=mesh_depth)
+    fused = _render(rasterizer, scene, room_depth=mesh_depth, real=noisy_real)
+    i = 6  # the box behind the front-left leg
+    wrong_plain = np.logical_xor(plain.labels == i + 1, true.labels == i + 1).sum()
+    wrong_fused = np.logical_xor(fused.labels == i + 1, true.labels == i + 1).sum()
+    assert wrong_plain > 20
+    assert wrong_fused <= 0.1 * wrong_plain
+    assert fused.stats["occluded_by_real_px"] >= 0.9 * wrong_plain
+    # Objects resting on real surfaces are not eaten by sensor noise: all other instances unchanged.
+    for j in range(len(scene["pl"].obj_ids)):
+        if j != i:
+            assert S.iou(fused.labels == j + 1, true.labels == j + 1) >= RASTER_MASK_IOU_MIN
+
+
+def test_real_depth_within_tolerance_does_not_occlude(rasterizer, scene):
+    res0 = _render(rasterizer, scene)
+    obj = res0.labels > 0
+    real = np.where(obj, res0.depth - 0.015, 0).astype(np.float32)  # 1.5 cm nearer: inside the tolerance
+    res = _render(rasterizer, scene, real=real)
+    assert np.array_equal(res.labels, res0.labels)
+    real = np.where(obj, res0.depth - 0.10, 0).astype(np.float32)  # 10 cm nearer: occludes everything
+    res = _render(rasterizer, scene, real=real, cfg=RasterConfig(min_visible_area=0.0))
+    assert res.stats["visible_px"] == 0
+
+
+def test_scaled_camera_keeps_pixel_centres(rasterizer, scene):
+    K2, w2, h2 = scaled_camera(scene["K"], W, H, 0.5)
+    assert (w2, h2) == (W // 2, H // 2)
+    full = _render(rasterizer, scene)
+    half = _render(rasterizer, scene, K=K2, w=w2, h=h2, room_depth=scene["room_depth"][::2, ::2] * 0)
+    for i in (0, 1, 3):
+        a, b = full.instances[i]["px_count_all"] / 4, half.instances[i]["px_count_all"]
+        assert b == pytest.approx(a, rel=0.12)
+        # centroids agree: (u + 0.5) * s - 0.5
+        ys, xs = np.nonzero(full.amodal[i])
+        ys2, xs2 = np.nonzero(half.amodal[i])
+        assert (xs.mean() + 0.5) * 0.5 - 0.5 == pytest.approx(xs2.mean(), abs=0.3)
+        assert (ys.mean() + 0.5) * 0.5 - 0.5 == pytest.approx(ys2.mean(), abs=0.3)
+
+
+def test_save_load_roundtrip_and_determinism(rasterizer, scene, tmp_path):
+    a = _render(rasterizer, scene)
+    b = _render(rasterizer, scene)
+    pack = annotate.pack_masks
+    assert npz_bytes({"d": a.depth, "l": a.labels, "m": pack(a.amodal)}) == \
+        npz_bytes({"d": b.depth, "l": b.labels, "m": pack(b.amodal)})
+    doc = frame_doc(a, scene="room", drop=2, frame=7, frame_id=70, fusion=False)
+    save_frame(tmp_path / "f000007", a, doc)
+    doc2, arr = load_frame(tmp_path / "f000007")
+    assert doc2 == json.loads(json.dumps(doc))
+    assert arr["depth"].dtype == np.float32 and arr["labels"].dtype == np.uint16
+    assert np.array_equal(arr["labels"], a.labels) and np.array_equal(arr["amodal"], a.amodal)
+    a_inst = doc2["instances"][1]
+    R = np.asarray(a_inst["R_m2c"])
+    assert np.allclose(R.T @ R, np.eye(3), atol=1e-9)
+
+
+def test_poses_file_roundtrip(tmp_path):
+    pl = S.placement(scene="kitchen", drop=3)
+    p = save_poses_file(tmp_path / "poses.json", [pl], frames=[[4, 1]])
+    (e,) = load_poses_file(p, obj_ids=[1, 2, 3, 4], scenes=["kitchen"])
+    assert e.frames == (1, 4)
+    assert np.array_equal(e.placement.obj_ids, pl.obj_ids)
+    assert np.allclose(e.placement.R_m2w, pl.R_m2w) and np.allclose(e.placement.t_m2w, pl.t_m2w)
+    # a single object instead of a list is accepted too
+    one = {"scene": "kitchen", "drop": 0, "instances": [{"obj_id": 1, "R_m2w": np.eye(3).tolist(),
+                                                          "t_m2w": [0, 0, 1]}]}
+    (tmp_path / "one.json").write_text(json.dumps(one))
+    (e1,) = load_poses_file(tmp_path / "one.json")
+    assert e1.frames is None and e1.placement.drop == 0
+
+
+@pytest.mark.parametrize("mutate, match", [
+    (lambda d: d["instances"][0].update(R_m2w=(2 * np.eye(3)).tolist()), "not a rotation"),
+    (lambda d: d["instances"][0].update(obj_id=99), "obj_id 99 is not in the object library"),
+    (lambda d: d.update(scene="attic"), "scene 'attic' is not an ingested scene"),
+    (lambda d: d["instances"][0].pop("t_m2w"), "must have 'obj_id'"),
+    (lambda d: d["instances"][0].update(t_m2w=[0, 0]), r"shape \(2,\), expected \(3,\)"),
+    (lambda d: d["instances"][0].update(t_m2w=[0, float("nan"), 0]), "NaN"),
+    (lambda d: d.update(drop=-1), "drop = -1"),
+    (lambda d: d.update(frames=[1, "a"]), "'frames' must be a list"),
+])
+def test_poses_file_errors_name_the_problem(tmp_path, mutate, match):
+    d = {"scene": "kitchen", "drop": 0, "instances": [{"obj_id": 1, "R_m2w": np.eye(3).tolist(),
+                                                        "t_m2w": [0, 0, 1]}]}
+    mutate(d)
+    p = tmp_path / "poses.json"
+    p.write_text(json.dumps(d, allow_nan=True))
+    with pytest.raises(InputError, match=match) as e:
+        load_poses_file(p, obj_ids=[1, 2], scenes=["kitchen"])
+    assert str(p) in str(e.value)
+
+
+def test_poses_file_not_json(tmp_path):
+    p = tmp_path / "poses.json"
+    p.write_text("{not json")
+    with pytest.raises(InputError, match="cannot read the poses file"):
+        load_poses_file(p)
+
+
+def test_config_fields():
+    cfg = build_config({"raster": {"real_depth_fusion": False, "fusion_tol_abs": 0.05}})
+    assert cfg.raster.real_depth_fusion is False and cfg.raster.fusion_tol_abs == 0.05
+    assert cfg.raster.visib_threshold == 0.3 and cfg.raster.min_visible_area == 0.01
