@@ -6,6 +6,8 @@ import numpy as np
 
 from pipeline.types import ObjectModel, Placement
 
+W_RUN, H_RUN = 160, 120
+
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     """(4, 4) OpenCV camera-to-world pose at ``eye`` looking at ``target`` (z up in the world)."""
@@ -147,3 +149,77 @@ def raycast(meshes: list[tuple[np.ndarray, np.ndarray]], K: np.ndarray, T_c2w: n
 def iou(a: np.ndarray, b: np.ndarray) -> float:
     u = np.logical_or(a, b).sum()
     return 1.0 if u == 0 else float(np.logical_and(a, b).sum() / u)
+
+
+# ---------------------------------------------------------------------------------------------------
+# A run folder as ingest writes it (scan + library), without running TSDF fusion
+# ---------------------------------------------------------------------------------------------------
+
+def make_run(run_dir, rasterizer, *, width: int = W_RUN, height: int = H_RUN, frames: int = 3,
+             drops: int = 2) -> dict:
+    """Write ``RUN/ingest/room`` (photos, real depth with the table legs, room mesh WITHOUT them),
+    ``RUN/ingest/objects`` and a poses file with ``drops`` placements; return paths and the truth."""
+    from pathlib import Path
+
+    import cv2
+
+    from pipeline.ingest import save_scan
+    from pipeline.objects import save_library
+    from pipeline.raster import save_poses_file
+    from pipeline.scanformats.mesh import ply_bytes
+    from pipeline.io import atomic_write_bytes
+    from pipeline.types import Scan
+
+    run = Path(run_dir)
+    scene_dir = run / "ingest" / "room"
+    raw = run / "rawscan"
+    raw.mkdir(parents=True, exist_ok=True)
+    truth = room_mesh(with_legs=True)
+    scan_mesh = room_mesh(with_legs=False)
+    rasterizer.add_mesh("make-run-truth", *truth)
+    K, T0 = camera(width, height)
+    Ts, colors, depths = [], [], []
+    for i in range(frames):
+        T = look_at((0.1 + 0.08 * i, -1.3, 1.1), (0.05, 0.2, 0.25))
+        d = rasterizer.render_depth(K, T, width, height, [("make-run-truth", np.eye(4))])
+        img = np.zeros((height, width, 3), np.uint8)
+        img[..., 0] = np.clip(d * 60, 0, 255).astype(np.uint8)
+        img[..., 1] = (np.arange(width)[None] * 255 // width).astype(np.uint8)
+        img[..., 2] = 90
+        cpath, dpath = raw / f"frame-{i:06d}.color.png", raw / f"frame-{i:06d}.depth.png"
+        cv2.imwrite(str(cpath), img[..., ::-1])
+        cv2.imwrite(str(dpath), np.round(d * 1000).astype(np.uint16))
+        Ts.append(T)
+        colors.append(str(cpath))
+        depths.append(str(dpath))
+    mesh_path = scene_dir / "room.ply"
+    atomic_write_bytes(mesh_path, ply_bytes(scan_mesh[0], scan_mesh[1], None))
+    scan = Scan(name="room", root=str(raw), format="7scenes", frame_ids=np.arange(frames, dtype=np.int64) * 10,
+                color_paths=tuple(colors), depth_paths=tuple(depths), width=width, height=height,
+                K=np.repeat(K[None], frames, 0), T_c2w=np.asarray(Ts), depth_width=width, depth_height=height,
+                depth_K=np.repeat(K[None], frames, 0), depth_scale=0.001, depth_registered=True,
+                up_w=np.array([0.0, 0.0, 1.0]), mesh_path=str(mesh_path), meta={})
+    save_scan(scene_dir, scan)
+    lib = library()
+    save_library(run / "ingest" / "objects", lib)
+    pls = [placement(scene="room", drop=d) for d in range(drops)]
+    if drops > 1:  # second drop: the objects shifted along x
+        for d in range(1, drops):
+            pls[d] = Placement(scene="room", drop=d, obj_ids=pls[d].obj_ids, R_m2w=pls[d].R_m2w,
+                               t_m2w=pls[d].t_m2w + np.array([0.03 * d, 0.0, 0.0]), at_rest=pls[d].at_rest,
+                               max_penetration=0.0, verdict="accepted")
+    poses = save_poses_file(run.parent / f"{run.name}-poses.json", pls)
+    return {"poses": poses, "scan": scan, "library": lib, "placements": pls, "truth": truth}
+
+
+def run_stage_direct(stage, run_dir, cfg) -> dict:
+    """Run a stage's items in this process (plan, run_item, finish), as the runner does with one worker."""
+    from pipeline.runner import StageContext
+
+    ctx = StageContext(run_dir=run_dir, cfg=cfg, stage=stage.name)
+    results = {}
+    for item in stage.plan(ctx):
+        results[item.key] = stage.run_item(ctx, item) or {}
+    if stage.finish is not None:
+        stage.finish(ctx, results)
+    return results
