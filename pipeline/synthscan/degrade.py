@@ -1,0 +1,132 @@
+"""Sensor degradation: photo noise and 8-bit encoding, defocus and motion blur, depth-sensor errors.
+
+All functions are pure: arrays and a seeded generator in, arrays out.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+# Kinect-like depth sensor (Nguyen, Izadi, Lovell 2012: axial noise of the Kinect v1).
+DEPTH_NOISE_A = 0.0012        # metres, sigma at 0.4 m
+DEPTH_NOISE_B = 0.0019        # metres / m^2, growth with (z - 0.4)^2
+DEPTH_MIN = 0.4               # metres, nearer is invalid
+DEPTH_FAR_START = 3.5         # metres, beyond this pixels start to drop out
+DEPTH_FAR_END = 4.5           # metres, all invalid beyond
+GRAZING_START_DEG = 70.0      # incidence angle where dropout starts
+GRAZING_END_DEG = 82.0        # incidence angle beyond which every pixel is invalid
+EDGE_JUMP = 0.05              # metres: a depth step larger than this is an occlusion edge
+EDGE_DROPOUT = 0.5            # probability that a pixel on an occlusion edge is invalid
+SPECKLE_DROPOUT = 0.003       # probability of a random invalid pixel
+
+
+def encode_photo(linear: np.ndarray, rng: np.random.Generator, *, read_noise: float = 0.004,
+                 shot_noise: float = 0.012) -> np.ndarray:
+    """Linear exposure units -> 8-bit photo with mild sensor noise (gamma 2.2, clipped at white).
+
+    Parameters
+    ----------
+    linear : (H, W, 3) float32, 1.0 = sensor white
+    rng : seeded generator
+    read_noise : sigma of additive noise, linear units
+    shot_noise : sigma of signal-dependent noise at 1.0 (scales with sqrt(signal))
+
+    Returns
+    -------
+    (H, W, 3) uint8
+    """
+    x = np.clip(linear, 0.0, None).astype(np.float32)
+    sigma = np.sqrt(read_noise ** 2 + shot_noise ** 2 * np.minimum(x, 1.0))
+    x = x + sigma * rng.standard_normal(x.shape, dtype=np.float32)
+    x = np.clip(x, 0.0, 1.0)
+    return np.round(np.power(x, 1 / 2.2) * 255.0).astype(np.uint8)
+
+
+def disk_kernel(radius: float) -> np.ndarray:
+    """Normalised anti-aliased disk of ``radius`` pixels (a thin lens's defocus PSF); (k, k) float32."""
+    r = max(float(radius), 0.5)
+    n = int(math.ceil(r)) + 1
+    y, x = np.mgrid[-n:n + 1, -n:n + 1].astype(np.float32)
+    k = np.clip(r + 0.5 - np.sqrt(x * x + y * y), 0.0, 1.0)
+    return (k / k.sum()).astype(np.float32)
+
+
+def defocus(linear: np.ndarray, radius: float) -> np.ndarray:
+    """Defocus blur: convolve a linear image with a disk of ``radius`` pixels; same shape and dtype."""
+    import cv2
+
+    return cv2.filter2D(linear, -1, disk_kernel(radius), borderType=cv2.BORDER_REFLECT)
+
+
+def depth_normals_cos(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """|cos| of the angle between each pixel's viewing ray and the surface normal, from the depth map.
+
+    Parameters
+    ----------
+    depth : (H, W) float32 metres, 0 = no surface
+    K : (3, 3) intrinsics
+
+    Returns
+    -------
+    (H, W) float32 in [0, 1]; 1 where the normal cannot be estimated
+    """
+    h, w = depth.shape
+    u = (np.arange(w, dtype=np.float32) - K[0, 2]) / K[0, 0]
+    v = (np.arange(h, dtype=np.float32) - K[1, 2]) / K[1, 1]
+    X = u[None, :] * depth
+    Y = v[:, None] * depth
+    P = np.stack([X, Y, depth], axis=-1)
+    dx = np.zeros_like(P)
+    dy = np.zeros_like(P)
+    dx[:, 1:-1] = P[:, 2:] - P[:, :-2]
+    dy[1:-1, :] = P[2:, :] - P[:-2, :]
+    n = np.cross(dx, dy)
+    nn = np.linalg.norm(n, axis=-1)
+    ray = np.stack([np.broadcast_to(u[None, :], depth.shape), np.broadcast_to(v[:, None], depth.shape),
+                    np.ones_like(depth)], axis=-1)
+    ray /= np.linalg.norm(ray, axis=-1, keepdims=True)
+    cos = np.abs(np.einsum("hwc,hwc->hw", n, ray)) / np.maximum(nn, 1e-12)
+    return np.where(nn > 0, cos, 1.0).astype(np.float32)
+
+
+def degrade_depth(depth: np.ndarray, K: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Sensor-like depth from true depth: axial noise growing with z^2, invalid pixels, mm quantisation.
+
+    Invalid (0): no surface, nearer than :data:`DEPTH_MIN`, far range (ramp from
+    :data:`DEPTH_FAR_START` to :data:`DEPTH_FAR_END`), grazing incidence (ramp from
+    :data:`GRAZING_START_DEG` to :data:`GRAZING_END_DEG`), occlusion edges (probability
+    :data:`EDGE_DROPOUT`) and random speckles.
+
+    Parameters
+    ----------
+    depth : (H, W) float32, true z-depth in metres, 0 = no surface
+    K : (3, 3) depth-camera intrinsics
+    rng : seeded generator
+
+    Returns
+    -------
+    (H, W) uint16, millimetres, 0 = invalid
+    """
+    z = depth.astype(np.float32)
+    valid = z > DEPTH_MIN
+    cos = depth_normals_cos(z, K)
+    inc = np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
+    p_graze = np.clip((inc - GRAZING_START_DEG) / (GRAZING_END_DEG - GRAZING_START_DEG), 0.0, 1.0)
+    p_far = np.clip((z - DEPTH_FAR_START) / (DEPTH_FAR_END - DEPTH_FAR_START), 0.0, 1.0)
+    jump = np.zeros(z.shape, bool)
+    dzx = np.abs(np.diff(z, axis=1)) > EDGE_JUMP
+    dzy = np.abs(np.diff(z, axis=0)) > EDGE_JUMP
+    jump[:, 1:] |= dzx
+    jump[:, :-1] |= dzx
+    jump[1:, :] |= dzy
+    jump[:-1, :] |= dzy
+    p_drop = 1.0 - (1.0 - p_graze) * (1.0 - p_far) * (1.0 - EDGE_DROPOUT * jump) * (1.0 - SPECKLE_DROPOUT)
+    u = rng.random(z.shape, dtype=np.float32)
+    valid &= u >= p_drop
+    sigma = DEPTH_NOISE_A + DEPTH_NOISE_B * (z - 0.4) ** 2
+    noisy = z + sigma * rng.standard_normal(z.shape, dtype=np.float32)
+    mm = np.round(noisy * 1000.0)
+    mm = np.where(valid, np.clip(mm, 1, 65535), 0)
+    return mm.astype(np.uint16)

@@ -1,0 +1,420 @@
+"""Generate a synthetic room scan in a real layout, with its ground truth.
+
+:func:`make_scan` is the entry point; :func:`builtin_scan` makes the named presets ("demo", "tiny").
+Everything is a function of the seed: the same arguments give byte-identical files. The room itself
+depends only on the seed (not on the size, frame count or layout).
+
+Ground truth, under ``OUT/ground_truth/``:
+
+- ``scan.json``: generator, layout, seed, sizes, intrinsics (OpenCV convention, pixel centres at
+  integers), depth camera, ``up_w``, the world-from-canonical transform, exposure, and per frame:
+  file names, ``T_c2w`` (metres, OpenCV camera axes), ``pose_valid``, blur label and strength; plus
+  the list of every file written (used to clean up when the folder is regenerated).
+- ``cameras.npz``: the same numbers as arrays: ``K`` (3, 3), ``depth_K`` (3, 3), ``T_c2w`` (F, 4, 4),
+  ``pose_valid`` (F,) bool, ``blur_kind`` (F,) int8 (0 none, 1 motion, 2 defocus), ``blur_strength_px``
+  (F,) float64, ``frame_ids`` (F,) int64.
+- ``mesh.ply``: the true geometry (metres, world frame), vertex colours = material mean colour,
+  vertex ``material_id`` and ``part_id``.
+- ``scan_mesh.ply``: the scanner's mesh (also written in the layout's own mesh format where it has one).
+- ``materials.json`` (+ ``textures/<material>.png``), ``lights.json`` (corners, normal, radiance, power),
+  ``thin_parts.json`` (thin parts, their size and how much of each the scan mesh lost).
+- ``depth/frame-XXXXXX.png``: true z-depth at the depth camera, uint16 in units of 0.1 mm (0 = none).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import UserError
+from pipeline.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, encode_image, read_json
+from pipeline.seeding import item_rng
+from pipeline.synthscan.writers import LAYOUTS, frame_files, frame_id, ply_bytes, write_frame, write_static
+
+log = logging.getLogger(__name__)
+
+GENERATOR = "pipeline.synthscan"
+VERSION = 1
+GT_DIR = "ground_truth"
+GT_DEPTH_SCALE = 1e-4         # metres per unit of the ground-truth depth PNGs
+LIGHT_CELL = 0.10             # metres, tessellation of the true mesh (carries the light map)
+PRESETS: dict[str, dict] = {
+    "demo": {"layout": "7scenes", "seed": 0, "width": 640, "height": 480, "frames": 50},
+    "tiny": {"layout": "7scenes", "seed": 0, "width": 160, "height": 120, "frames": 8},
+}
+BLUR_CODES = {"none": 0, "motion": 1, "defocus": 2}
+MAX_SIZE = 4096
+MAX_FRAMES = 5000
+
+
+@dataclass(frozen=True)
+class Cameras:
+    """Colour and depth cameras of a layout (the depth camera shares the colour camera's centre)."""
+
+    K: np.ndarray             # (3, 3) float64, colour intrinsics, pixels (OpenCV: pixel centres at integers)
+    width: int
+    height: int
+    depth_K: np.ndarray       # (3, 3) float64
+    depth_width: int
+    depth_height: int
+
+
+def layout_cameras(layout: str, width: int, height: int, rng: np.random.Generator) -> Cameras:
+    """Intrinsics like the real sensor of each layout, scaled to ``width`` x ``height`` (colour)."""
+    from pipeline.synthscan.trajectory import intrinsics
+
+    if layout == "7scenes":      # Kinect v1: f = 585 px at 640 x 480, depth registered to colour
+        K = intrinsics(width, height, 585.0 / 640.0, rng)
+        return Cameras(K, width, height, K.copy(), width, height)
+    if layout == "transforms":   # phone: ~65 degree horizontal field of view
+        K = intrinsics(width, height, 0.78, rng)
+        return Cameras(K, width, height, K.copy(), width, height)
+    if layout == "scannet":      # 1296 x 968 colour, 640 x 480 depth, both f/w ~ 0.9
+        K = intrinsics(width, height, 1169.6 / 1296.0, rng)
+        dw, dh = max(8, round(width * 640 / 1296)), max(8, round(height * 480 / 968))
+        dK = intrinsics(dw, dh, 577.6 / 640.0, rng, offset_px=1.0)
+        return Cameras(K, width, height, dK, dw, dh)
+    if layout == "3rscan":       # 960 x 540 colour, 224 x 172 depth with anisotropic focal lengths
+        K = intrinsics(width, height, 877.5 / 960.0, rng)
+        dw, dh = max(8, round(width * 224 / 960)), max(8, round(height * 172 / 540))
+        dK = intrinsics(dw, dh, 204.75 / 224.0, rng, offset_px=1.0)
+        dK[1, 1] = round(279.5 / 172.0 * dh, 3)
+        return Cameras(K, width, height, dK, dw, dh)
+    raise UserError(f"unknown layout {layout!r}; choose one of {', '.join(LAYOUTS)}")
+
+
+def _check_args(layout: str, seed: int, width: int, height: int, frames: int) -> None:
+    if layout not in LAYOUTS:
+        raise UserError(f"--layout {layout!r} is not a scan layout; choose one of {', '.join(LAYOUTS)}")
+    if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
+        raise UserError(f"--seed {seed!r}: the seed must be an integer >= 0")
+    for name, v in (("width", width), ("height", height)):
+        if not isinstance(v, (int, np.integer)) or not 16 <= v <= MAX_SIZE:
+            raise UserError(f"--size: {name} {v!r} is out of range; give WxH with 16 <= W, H <= {MAX_SIZE}")
+    if not isinstance(frames, (int, np.integer)) or not 1 <= frames <= MAX_FRAMES:
+        raise UserError(f"--frames {frames!r} is out of range; give 1 to {MAX_FRAMES}")
+
+
+def _prepare_out(out: Path) -> None:
+    """Make ``out`` empty of a previous generation's files; refuse a folder holding anything else."""
+    manifest = out / GT_DIR / "scan.json"
+    if manifest.is_file():
+        try:
+            old = read_json(manifest)
+            files = list(old.get("files", []))
+        except (OSError, ValueError) as e:
+            raise UserError(f"{manifest} is unreadable ({e}); delete {out} or choose another output folder") from e
+        if old.get("generator") != GENERATOR:
+            raise UserError(f"{out} holds a scan not written by {GENERATOR}; choose another output folder")
+        for rel in files:
+            p = (out / rel).resolve()
+            if out.resolve() in p.parents:
+                p.unlink(missing_ok=True)
+        manifest.unlink(missing_ok=True)
+        return
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out} is a file; give a folder for the scan")
+    if out.is_dir() and any(out.iterdir()):
+        raise UserError(f"{out} exists and is not empty; give a new or empty folder (or one written by "
+                        f"make-scan before, which is then regenerated)")
+
+
+def _world_from_canonical(layout: str, first_pose: np.ndarray) -> np.ndarray:
+    """7-Scenes' world frame is the first camera's (as KinectFusion writes it); others keep z up."""
+    if layout == "7scenes":
+        return np.linalg.inv(first_pose)
+    return np.eye(4)
+
+
+def _choose_frames(rng: np.random.Generator, frames: int, layout: str) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame: blur kind code (0/1/2) and pose validity (ScanNet loses tracking on a few frames)."""
+    kinds = np.zeros(frames, np.int8)
+    valid = np.ones(frames, bool)
+    candidates = np.arange(1, frames)
+    if layout == "scannet" and frames >= 4:
+        n_inv = max(1, round(0.04 * frames))
+        bad = rng.choice(candidates, size=n_inv, replace=False)
+        valid[bad] = False
+        candidates = np.setdiff1d(candidates, bad)
+    if frames >= 3:
+        n = max(1, round(0.1 * frames))
+        n = min(n, len(candidates) // 2)
+        pick = rng.choice(candidates, size=2 * n, replace=False)
+        kinds[pick[:n]] = BLUR_CODES["motion"]
+        kinds[pick[n:]] = BLUR_CODES["defocus"]
+    return kinds, valid
+
+
+def _motion_extent(depth: np.ndarray, K: np.ndarray, T_mid: np.ndarray, T_a: np.ndarray, T_b: np.ndarray,
+                   step: int = 4) -> float:
+    """Median image displacement (px) of the surface points seen at ``T_mid`` between poses ``T_a`` and ``T_b``."""
+    d = depth[::step, ::step]
+    v, u = np.nonzero(d > 0)
+    if len(u) == 0:
+        return 0.0
+    z = d[v, u].astype(np.float64)
+    uu, vv = u * step, v * step
+    Xc = np.stack([(uu - K[0, 2]) / K[0, 0] * z, (vv - K[1, 2]) / K[1, 1] * z, z], 1)
+    Xw = Xc @ T_mid[:3, :3].T + T_mid[:3, 3]
+
+    def project(T):
+        Tw2c = np.linalg.inv(T)
+        P = Xw @ Tw2c[:3, :3].T + Tw2c[:3, 3]
+        return np.stack([K[0, 0] * P[:, 0] / P[:, 2] + K[0, 2], K[1, 1] * P[:, 1] / P[:, 2] + K[1, 2]], 1)
+
+    return float(np.median(np.linalg.norm(project(T_b) - project(T_a), axis=1)))
+
+
+def _transform_points(T: np.ndarray, P: np.ndarray) -> np.ndarray:
+    return P @ T[:3, :3].T + T[:3, 3]
+
+
+def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, height: int = 480,
+              frames: int = 50, contact_sheet: str | Path | None = None, photo_mode: str = "raster") -> Path:
+    """Write a synthetic room scan in ``layout`` to ``out_dir``, with its ground truth.
+
+    Parameters
+    ----------
+    out_dir : folder to write (created; must be empty or hold an earlier make-scan output, which is replaced)
+    layout : "7scenes" | "3rscan" | "scannet" | "transforms"
+    seed : int >= 0
+    width, height : colour image size, pixels (depth is smaller for scannet and 3rscan, as in the real data)
+    frames : number of frames
+    contact_sheet : optional PNG path for a contact sheet of the frames (blurred ones marked)
+    photo_mode : "raster" (pyrender) or "traced" (needs the path tracer; not available yet)
+
+    Returns
+    -------
+    Path of the scan folder (``out_dir``).
+    """
+    from pipeline.synthscan import degrade, lighting
+    from pipeline.synthscan.render import make_photo_renderer
+    from pipeline.synthscan.room import make_room, tessellate
+    from pipeline.synthscan.scanmesh import make_scan_mesh
+    from pipeline.synthscan.trajectory import exposure_path, walk
+
+    _check_args(layout, seed, width, height, frames)
+    seed, width, height, frames = int(seed), int(width), int(height), int(frames)
+    out = Path(out_dir)
+    _prepare_out(out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    # Scene: depends on the seed only.
+    room = make_room(item_rng(seed, "synthscan", "room"))
+    mesh = tessellate(room, LIGHT_CELL)
+    shadows = lighting.EmbreeShadows(mesh.vertices, mesh.faces, samples=3)
+    E = lighting.direct_irradiance(mesh.vertices, mesh.normals.astype(np.float64), room.lights, shadows)
+    vmat = room.quad_material[mesh.vertex_quad]
+    emitter_v = np.array([m.emitter for m in room.materials])[vmat]
+    radiance = E / math.pi + room.ambient                     # outgoing radiance per unit albedo
+    exposure = 0.75 / float(np.median(radiance[~emitter_v].mean(axis=1)))
+    vertex_radiance = (radiance * exposure).astype(np.float32)
+    lamp_L = {L.name: L.radiance for L in room.lights}
+    for q, part in enumerate(room.parts):
+        if part.name in lamp_L:
+            sel = room.quad_part[mesh.vertex_quad] == q
+            vertex_radiance[sel] = (lamp_L[part.name] * exposure).astype(np.float32)
+
+    # Cameras and trajectory.
+    poses_canon = walk(room, item_rng(seed, "synthscan", "trajectory", str(frames)), frames)
+    cams = layout_cameras(layout, width, height, item_rng(seed, "synthscan", "cameras", layout, f"{width}x{height}"))
+    kinds, pose_valid = _choose_frames(item_rng(seed, "synthscan", "frames", layout, str(frames)), frames, layout)
+    T_wc = _world_from_canonical(layout, poses_canon[0])
+    poses = np.einsum("ij,fjk->fik", T_wc, poses_canon)
+    if layout == "7scenes":
+        poses[0] = np.eye(4)
+    up_w = T_wc[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    scene = f"scene{seed % 10000:04d}_00" if layout == "scannet" else f"synth{seed}"
+
+    renderer = make_photo_renderer(photo_mode, room, mesh, vertex_radiance)
+    files: list[str] = []
+    frame_docs: list[dict] = []
+    strengths = np.zeros(frames)
+    thumbs: list[np.ndarray] = []
+    tw = 160
+    th = max(1, round(height * tw / width))
+    try:
+        import cv2
+
+        for i in range(frames):
+            rng = item_rng(seed, "synthscan", "frame", layout, str(i))
+            T = poses_canon[i]
+            kind = int(kinds[i])
+            blur: dict = {"kind": "none", "strength_px": 0.0}
+            if kind == BLUR_CODES["motion"]:
+                target = rng.uniform(6.0, 18.0) * width / 640.0
+                psi = rng.uniform(0, 2 * math.pi)
+                mag = target / cams.K[0, 0]
+                omega = mag * np.array([math.sin(psi), math.cos(psi), rng.uniform(-0.3, 0.3)])
+                vel = rng.normal(0.0, 0.01, 3)
+                n_sub = int(np.clip(math.ceil(target / 1.5), 6, 16))
+                subs = exposure_path(T, omega, vel, n_sub)
+                img = np.zeros((height, width, 3), np.float32)
+                for S in subs:
+                    img += renderer.render_color(S, cams.K, width, height)
+                img /= n_sub
+                depth_c = renderer.render_depth(T, cams.K, width, height)
+                strength = _motion_extent(depth_c, cams.K, T, subs[0], subs[-1])
+                blur = {"kind": "motion", "strength_px": round(strength, 4), "sub_frames": n_sub,
+                        "omega_rad": omega.tolist(), "velocity_m": vel.tolist()}
+            else:
+                img = renderer.render_color(T, cams.K, width, height)
+                if kind == BLUR_CODES["defocus"]:
+                    r = round(float(rng.uniform(2.0, 5.0) * width / 640.0), 4)
+                    img = degrade.defocus(img, r)
+                    blur = {"kind": "defocus", "strength_px": r, "psf": "disk", "radius_px": r}
+            strengths[i] = blur["strength_px"]
+            photo = degrade.encode_photo(img, rng)
+            true_depth = renderer.render_depth(T, cams.depth_K, cams.depth_width, cams.depth_height)
+            depth_mm = degrade.degrade_depth(true_depth, cams.depth_K, rng)
+            files += write_frame(out, layout, i, photo, depth_mm, poses[i], bool(pose_valid[i]))
+            gt_rel = f"{GT_DIR}/depth/frame-{i:06d}.png"
+            gt_depth = np.clip(np.round(true_depth.astype(np.float64) / GT_DEPTH_SCALE), 0, 65535).astype(np.uint16)
+            atomic_write_bytes(out / gt_rel, encode_image(gt_rel, gt_depth))
+            files.append(gt_rel)
+            ff = frame_files(layout, i)
+            frame_docs.append({"index": i, "frame_id": frame_id(layout, i), "color": ff.color, "depth": ff.depth,
+                               "pose": ff.pose, "gt_depth": gt_rel, "pose_valid": bool(pose_valid[i]),
+                               "T_c2w": poses[i].tolist(), "blur": blur})
+            if contact_sheet is not None:
+                thumbs.append(cv2.resize(photo, (tw, th), interpolation=cv2.INTER_AREA))
+            log.debug("frame %d/%d done (%s)", i + 1, frames, blur["kind"])
+    finally:
+        renderer.close()
+
+    # Scanner's mesh and the layout's static files.
+    smesh = make_scan_mesh(room, mesh, vertex_radiance, item_rng(seed, "synthscan", "scan_mesh"),
+                           cell=0.04 if width * height >= 320 * 240 else 0.08)
+    sverts = _transform_points(T_wc, smesh.vertices)
+    files += write_static(out, layout, scene=scene, K=cams.K, width=width, height=height, depth_K=cams.depth_K,
+                          depth_width=cams.depth_width, depth_height=cams.depth_height, up_w=up_w, poses=poses,
+                          pose_valid=pose_valid, mesh_vertices=sverts, mesh_faces=smesh.faces,
+                          mesh_colors=smesh.colors)
+
+    files += _write_truth(out, room, mesh, smesh, sverts, T_wc, exposure)
+    atomic_save_npz(out / GT_DIR / "cameras.npz", K=cams.K, depth_K=cams.depth_K, T_c2w=poses,
+                    pose_valid=pose_valid, blur_kind=kinds, blur_strength_px=strengths,
+                    frame_ids=np.array([frame_id(layout, i) for i in range(frames)], np.int64))
+    files.append(f"{GT_DIR}/cameras.npz")
+
+    if contact_sheet is not None:
+        from pipeline.synthscan.contact import contact_sheet as make_sheet
+
+        labels = [{"index": d["index"], "blur": d["blur"]["kind"], "strength_px": d["blur"]["strength_px"],
+                   "pose_valid": d["pose_valid"]} for d in frame_docs]
+        sheet = make_sheet(thumbs, labels)
+        atomic_write_bytes(Path(contact_sheet), encode_image(Path(contact_sheet).with_suffix(".png"), sheet))
+
+    doc = {
+        "generator": GENERATOR, "version": VERSION, "layout": layout, "seed": seed, "scene": scene,
+        "photo_mode": photo_mode, "width": width, "height": height, "frames": frames,
+        "K": cams.K.tolist(), "depth_K": cams.depth_K.tolist(), "depth_width": cams.depth_width,
+        "depth_height": cams.depth_height, "depth_scale": 0.001, "gt_depth_scale": GT_DEPTH_SCALE,
+        "depth_registered": True, "up_w": up_w.tolist(), "T_world_from_canonical": T_wc.tolist(),
+        "exposure": exposure, "conventions": {
+            "K": "OpenCV: pixel (u, v) centred at integer coordinates; transforms.json stores cx, cy + 0.5 "
+                 "(nerfstudio centres pixels at i + 0.5)",
+            "T_c2w": "camera-to-world, metres, OpenCV camera axes (x right, y down, z forward)",
+            "invalid_pose": "pose_valid false: the layout's pose file says tracking was lost (ScanNet -inf); "
+                            "ingest must skip these frames",
+        },
+        "num_valid_poses": int(pose_valid.sum()),
+        "frames_info": frame_docs,
+        "files": sorted(files + [f"{GT_DIR}/scan.json"]),
+    }
+    atomic_write_json(out / GT_DIR / "scan.json", doc)
+    log.info("wrote %s scan with %d frames to %s", layout, frames, out)
+    return out
+
+
+def _write_truth(out: Path, room, mesh, smesh, sverts: np.ndarray, T_wc: np.ndarray, exposure: float) -> list[str]:
+    """Ground-truth mesh, materials, lights and thin parts, in the layout's world frame."""
+    from pipeline.synthscan.textures import _to_srgb8
+
+    files: list[str] = []
+    g = out / GT_DIR
+    vmat = room.quad_material[mesh.vertex_quad]
+    base = np.array([m.base_color for m in room.materials], np.float32)
+    vcol = _to_srgb8(base[vmat])
+    verts_w = _transform_points(T_wc, mesh.vertices)
+    atomic_write_bytes(g / "mesh.ply", ply_bytes(
+        verts_w, mesh.faces, vcol, vertex_ints={"material_id": vmat, "part_id": room.quad_part[mesh.vertex_quad]},
+        comments=("synthscan true geometry, metres, world frame",)))
+    atomic_write_bytes(g / "scan_mesh.ply", ply_bytes(sverts, smesh.faces, smesh.colors,
+                                                      comments=("synthscan scanner-like mesh, metres",)))
+    files += [f"{GT_DIR}/mesh.ply", f"{GT_DIR}/scan_mesh.ply"]
+
+    mats = []
+    for m in room.materials:
+        rel = f"{GT_DIR}/textures/{m.name}.png"
+        atomic_write_bytes(out / rel, encode_image(rel, room.textures[m.id]))
+        files.append(rel)
+        mats.append({"id": m.id, "name": m.name, "texture_kind": m.kind, "base_color_linear": list(m.base_color),
+                     "metres_per_repeat": m.metres_per_repeat, "roughness": m.roughness, "metallic": 0.0,
+                     "emitter": m.emitter, "texture": rel})
+    atomic_write_json(g / "materials.json", {"materials": mats})
+
+    R = T_wc[:3, :3]
+    lights = []
+    for L in room.lights:
+        c = _transform_points(T_wc, L.corners)
+        lights.append({"name": L.name, "kind": L.kind, "corners": c.tolist(), "position": c.mean(0).tolist(),
+                       "normal": (R @ L.normal).tolist(), "size_m": [float(np.linalg.norm(L.corners[1] - L.corners[0])),
+                                                                   float(np.linalg.norm(L.corners[3] - L.corners[0]))],
+                       "area_m2": L.area, "radiance": L.radiance.tolist(), "power": L.power.tolist()})
+    atomic_write_json(g / "lights.json", {
+        "units": "relative radiometric units: radiance W/(m^2 sr), power W; photo pixel (linear) = "
+                 "exposure * albedo * outgoing radiance per unit albedo, clipped at 1",
+        "exposure": exposure, "ambient_radiance": room.ambient, "lights": lights,
+        "shading": "raster mode: Lambert; exact polygon irradiance per light with 3x3-ray soft shadows, "
+                   "baked on vertices every 0.1 m, plus uniform ambient; no inter-reflection"})
+
+    thin = []
+    for pi, p in enumerate(room.parts):
+        if not p.thin:
+            continue
+        sel = np.isin(mesh.vertex_quad, np.arange(p.quad_start, p.quad_stop))
+        pv = verts_w[sel]
+        thin.append({"name": p.name, "part_id": pi, "material": room.materials[p.material_id].name,
+                     "thickness_m": p.thickness, "bbox_min": pv.min(0).tolist(), "bbox_max": pv.max(0).tolist(),
+                     "scan_mesh_missing_fraction": smesh.thin_missing.get(p.name, 0.0)})
+    atomic_write_json(g / "thin_parts.json", {"thin_parts": thin})
+    files += [f"{GT_DIR}/materials.json", f"{GT_DIR}/lights.json", f"{GT_DIR}/thin_parts.json"]
+    return files
+
+
+def builtin_scan(name: str, out_dir: str | Path) -> Path:
+    """Write the preset scan ``name`` ("demo": 640x480, 50 frames; "tiny": 160x120, 8 frames; both in the
+    7scenes layout, seed 0) to ``out_dir`` and return ``out_dir``.
+
+    A folder that already holds the same preset from this generator version is reused as it is.
+    """
+    if name not in PRESETS:
+        raise UserError(f"builtin:{name} is not a built-in scan; choose one of "
+                        f"{', '.join('builtin:' + k for k in PRESETS)}")
+    p = PRESETS[name]
+    out = Path(out_dir)
+    manifest = out / GT_DIR / "scan.json"
+    if manifest.is_file():
+        try:
+            doc = read_json(manifest)
+        except (OSError, ValueError):
+            doc = {}
+        same = (doc.get("generator") == GENERATOR and doc.get("version") == VERSION
+                and all(doc.get(k) == v for k, v in p.items()))
+        if same and all((out / rel).is_file() for rel in doc.get("files", [])):
+            return out
+    return make_scan(out, **p)
+
+
+def remove_scan(out_dir: str | Path) -> None:
+    """Delete a folder written by :func:`make_scan` (refuses any other folder)."""
+    out = Path(out_dir)
+    if not (out / GT_DIR / "scan.json").is_file():
+        raise UserError(f"{out} is not a folder written by make-scan (no {GT_DIR}/scan.json)")
+    shutil.rmtree(out)
