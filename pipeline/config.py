@@ -112,10 +112,23 @@ class IngestConfig:
 class SelectConfig:
     """Frame selection: drop blurred frames, keep diverse views."""
 
-    method: str = option("thesis", "blur scoring method", choices=("thesis", "none"))
+    method: str = option("relative", "blur scoring method: relative = detail against the frame's neighbours "
+                         "(pipeline/blur.py), thesis = published Canny/Laplacian rule, none = keep all",
+                         choices=("thesis", "none", "relative"))
     min_angle_deg: float = option(0.0, "minimum viewing-angle change between kept frames, degrees", min=0.0)
     min_baseline_m: float = option(0.0, "minimum camera travel between kept frames, metres", min=0.0)
     max_frames: int = option(0, "keep at most this many frames per scan; 0 = no limit", min=0)
+    window: int = option(5, "relative: neighbour frames on each side that set a frame's sharp reference", min=1)
+    min_relative: float = option(0.5, "relative: drop a frame whose detail is below this share of its "
+                                 "neighbours' sharp reference (0..1)", min=0.0, max=1.0)
+    min_brightness: float = option(0.02, "relative: drop frames whose mean brightness is below this share "
+                                   "of full scale (black frames), 0..1", min=0.0, max=1.0)
+    scan_blur_max: float = option(0.45, "relative: flag the whole scan as blurred when even its sharpest "
+                                  "tenth of frames has a blur effect (Crete 2007, 0 sharp..1) above this",
+                                  min=0.0, max=1.0)
+    thesis_edge_range: str = option("0-255", "thesis: scale of the Canny edge map whose mean must reach 0.5 "
+                                    "(0-1 keeps no real frame; see pipeline/blur.py)", choices=("0-255", "0-1"))
+    contact_sheet: bool = option(True, "write contact_sheet.png of kept and dropped frames with their scores")
 
 
 @dataclass(frozen=True)
