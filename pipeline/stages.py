@@ -15,14 +15,14 @@ from pipeline.runner import Stage
 STAGE_ORDER: tuple[str, ...] = ("ingest", "select", "prep", "simulate", "raster", "trace", "composite", "export")
 
 _LOCATIONS: dict[str, str] = {
-    "ingest": "placeholder:issue 3 (scan and object ingest)",
-    "select": "placeholder:issue 6 (frame selection)",
+    "ingest": "pipeline.ingest:STAGE",
+    "select": "pipeline.select:STAGE",
     "prep": "placeholder:issue 5/7 (mesh preparation for physics and tracing)",
     "simulate": "placeholder:issue 7 (physics)",
-    "raster": "placeholder:issue 8 (raster passes and annotations)",
+    "raster": "pipeline.raster:STAGE",
     "trace": "placeholder:issue 9 (path tracer)",
     "composite": "placeholder:issue 10 (compositor)",
-    "export": "placeholder:issue 8 (BOP and COCO writers)",
+    "export": "pipeline.export:STAGE",
 }
 
 _HELP: dict[str, str] = {

@@ -67,7 +67,7 @@ def test_help_on_every_command(cmd, capsys):
 
 def test_run_folder_records_config_seed_versions_and_refuses_other_configs(tmp_path, capsys):
     out = tmp_path / "out"
-    cfg = _cfg(tmp_path, "[run]\nseed = 4\n[scan]\npaths = []\n[objects]\npaths = []\n")
+    cfg = _cfg(tmp_path, "[run]\nseed = 4\n[scan]\npaths = []\n[objects]\npaths = [\"builtin:shapes\"]\n")
     code, _ = _run(["run", cfg, "--out", out, "--to", "ingest", "-q"], capsys)
     assert code == 0
     assert load_config(out / CONFIG_NAME).run.seed == 4
