@@ -63,8 +63,9 @@ def frame_files(layout: str, i: int) -> FrameFiles:
 
 
 def frame_id(layout: str, i: int) -> int:
-    """The layout's own number of frame ``i`` (nerfstudio counts from 1)."""
-    return i + 1 if layout == "transforms" else i
+    """The number of frame ``i`` as a reader sees it: the file number, or the position in
+    transforms.json's ``frames`` list (whose file names count from 1, as nerfstudio writes them)."""
+    return i
 
 
 def matrix_text(M: np.ndarray, fmt: str) -> bytes:

@@ -192,6 +192,56 @@ def test_transforms_json_fields(scans):
 
 
 # ---------------------------------------------------------------------------------------------------
+# Round trip through ingest (pipeline/ingest.py, issue 3)
+# ---------------------------------------------------------------------------------------------------
+
+def ingest_back(scan: Path, run_dir: Path):
+    from pipeline import ingest
+    from pipeline.config import build_config
+
+    cfg = build_config({"ingest": {"tsdf_voxel": 0.08, "tsdf_trunc": 0.3, "depth_max": 5.0}})
+    ingest.ingest_scan(scan, "s", run_dir / "ingest" / "s", cfg)
+    return ingest.load_scan(run_dir, "s")
+
+
+@pytest.mark.parametrize("layout", [pytest.param("7scenes", marks=pytest.mark.slow), "3rscan", "scannet",
+                                    "transforms"])
+def test_round_trip_through_ingest(scans, tmp_path, layout, recwarn):
+    from pipeline import ingest
+
+    doc, cams = truth(scans[layout])
+    s = ingest_back(scans[layout], tmp_path)
+    valid = cams["pose_valid"]
+    assert s.num_frames == int(valid.sum()) == doc["num_valid_poses"]
+    np.testing.assert_array_equal(s.frame_ids, cams["frame_ids"][valid])
+    np.testing.assert_allclose(s.T_c2w, cams["T_c2w"][valid], atol=POSE_TOL, rtol=0)
+    assert (s.width, s.height) == (doc["width"], doc["height"])
+    if layout != "transforms":      # see test_transforms_principal_point_through_ingest
+        np.testing.assert_allclose(s.K, np.broadcast_to(cams["K"], s.K.shape), atol=POSE_TOL, rtol=0)
+    if layout in ("3rscan", "scannet"):
+        assert (s.depth_width, s.depth_height) == (doc["depth_width"], doc["depth_height"])
+        np.testing.assert_allclose(s.depth_K, np.broadcast_to(cams["depth_K"], s.depth_K.shape), atol=POSE_TOL,
+                                   rtol=0)
+    assert s.depth_scale == pytest.approx(0.001)
+    assert float(s.up_w @ np.array(doc["up_w"])) > 0.99
+    V, F, _ = ingest.load_room_mesh(s)
+    assert len(F) > 0
+    d = ingest.read_depth(s, 0)
+    gt = cv2.imread(str(scans[layout] / doc["frames_info"][int(np.flatnonzero(valid)[0])]["gt_depth"]),
+                    cv2.IMREAD_UNCHANGED)
+    assert d.shape == (doc["height"], doc["width"]) and gt is not None
+
+
+@pytest.mark.xfail(strict=True, reason="ingest reads transforms.json cx, cy as OpenCV values; nerfstudio centres "
+                                       "pixel i at i + 0.5, so K[0:2, 2] = (cx, cy) - 0.5 (fix in "
+                                       "pipeline/scanformats/transforms.py, then drop this marker)")
+def test_transforms_principal_point_through_ingest(scans, tmp_path):
+    _, cams = truth(scans["transforms"])
+    s = ingest_back(scans["transforms"], tmp_path)
+    np.testing.assert_allclose(s.K, np.broadcast_to(cams["K"], s.K.shape), atol=POSE_TOL, rtol=0)
+
+
+# ---------------------------------------------------------------------------------------------------
 # Ground truth content
 # ---------------------------------------------------------------------------------------------------
 
@@ -292,6 +342,7 @@ def test_different_seed_different_room(tmp_path, scans):
     assert (other / GT_DIR / "mesh.ply").read_bytes() != (scans["7scenes"] / GT_DIR / "mesh.ply").read_bytes()
 
 
+@pytest.mark.slow
 def test_regenerating_removes_stale_frames(tmp_path):
     out = make_scan(tmp_path / "s", layout="scannet", seed=0, width=64, height=48, frames=6)
     assert (out / "color" / "5.jpg").is_file()
