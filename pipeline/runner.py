@@ -147,6 +147,37 @@ def execute_item(run_dir: str, cfg_dict: dict, stage_ref: str, item: Item) -> tu
     return item.key, None, time.perf_counter() - t0
 
 
+def _ray():
+    try:
+        import ray
+    except ImportError:
+        raise ConfigError("run.executor = 'ray' needs Ray: install the extra with "
+                          "'.venv/bin/pip install \"scansynth[ray]\"' (or set run.executor = 'local')") from None
+    return ray
+
+
+def _run_on_ray(cfg: Config, run_dir: str, cfg_dict: dict, stage_ref: str, todo: list[Item]):
+    """Run items as Ray tasks; yield ``execute_item`` results as they complete.
+
+    Joins ``run.ray_address`` when given, else starts (or reuses) a local Ray instance. Items are
+    idempotent and write their own outputs and markers, so a task Ray retries after losing a worker
+    only redoes that item. The run folder must be on a filesystem every node sees.
+    """
+    ray = _ray()
+    if not ray.is_initialized():
+        try:
+            ray.init(address=cfg.run.ray_address or None, include_dashboard=False, log_to_driver=False,
+                     configure_logging=False)
+        except ConnectionError as e:
+            raise ConfigError(f"run.ray_address = {cfg.run.ray_address!r}: cannot join a Ray cluster there "
+                              f"({e}); start one with 'ray start --head' or leave the address empty") from None
+    task = ray.remote(max_retries=3)(execute_item)
+    pending = [task.remote(run_dir, cfg_dict, stage_ref, it) for it in todo]
+    while pending:
+        done, pending = ray.wait(pending, num_returns=1)
+        yield ray.get(done[0])
+
+
 def _workers(cfg: Config) -> int:
     n = cfg.run.workers
     return (os.cpu_count() or 1) if n == 0 else n
@@ -193,10 +224,10 @@ def run_stage(run_dir: Path, cfg: Config, stage: Stage,
 
     cfg_dict = config_to_dict(cfg)
     n_workers = min(_workers(cfg), max(1, len(todo)))
-    if cfg.run.executor == "ray":
-        raise ConfigError("run.executor = 'ray': the Ray executor is not built yet (issue 11); "
-                          "use run.executor = 'local'")
-    if n_workers <= 1:
+    if cfg.run.executor == "ray" and todo:
+        for res in _run_on_ray(cfg, str(run_dir), cfg_dict, stage_ref, todo):
+            record(*res)
+    elif n_workers <= 1:
         for it in todo:
             record(*execute_item(str(run_dir), cfg_dict, stage_ref, it))
     else:
