@@ -35,6 +35,7 @@ from pipeline.seeding import item_rng
 log = logging.getLogger(__name__)
 
 ITEMS_DIR = "_items"
+PLAN_FAILED = "_plan.failed.json"  # written when a stage cannot list its items
 
 
 @dataclass(frozen=True)
@@ -198,7 +199,18 @@ def run_stage(run_dir: Path, cfg: Config, stage: Stage,
         log.warning("stage %s is a PLACEHOLDER and did nothing: %s", stage.name, stage.placeholder)
         return report
     ctx = StageContext(run_dir=run_dir, cfg=cfg, stage=stage.name)
-    items = stage.plan(ctx)
+    try:
+        items = stage.plan(ctx)
+    except Exception as e:  # noqa: BLE001 - a stage that cannot plan fails alone; the run reports it
+        user = isinstance(e, UserError)
+        msg = str(e) if user else f"{type(e).__name__}: {e} (bug; traceback in {PLAN_FAILED})"
+        atomic_write_json(run_dir / stage.name / ITEMS_DIR / PLAN_FAILED,
+                          {"error": msg, "user_error": user, "traceback": "" if user else traceback.format_exc()})
+        log.error("%s could not list its work: %s", stage.name, msg)
+        report.failed, report.failures = 1, {"(plan)": msg}
+        report.seconds = time.perf_counter() - t0
+        return report
+    (run_dir / stage.name / ITEMS_DIR / PLAN_FAILED).unlink(missing_ok=True)
     keys = [it.key for it in items]
     if len(set(keys)) != len(keys):
         raise RuntimeError(f"stage {stage.name} planned duplicate item keys")

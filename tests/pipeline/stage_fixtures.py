@@ -36,3 +36,15 @@ def _run_failing(ctx, item):
 
 ARRAYS = Stage(name="arrays", plan=_plan, run_item=_run)
 FAILING = Stage(name="failing", plan=_plan, run_item=_run_failing)
+
+
+def _plan_bug(ctx):
+    raise KeyError("missing upstream output")
+
+
+def _plan_user(ctx):
+    raise InputError("scan folder /x: no frames found (fix: point scan.paths at the folder with frame-*.png)")
+
+
+PLAN_BUG = Stage(name="planbug", plan=_plan_bug, run_item=_run)
+PLAN_USER = Stage(name="planuser", plan=_plan_user, run_item=_run)

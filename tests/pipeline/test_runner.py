@@ -73,3 +73,13 @@ def test_duplicate_item_keys_are_a_bug(tmp_path, monkeypatch):
     dup = Stage(name="dup", plan=lambda ctx: [Item("a"), Item("a")], run_item=lambda c, i: None)
     with pytest.raises(RuntimeError, match="duplicate"):
         run_stage(tmp_path, build_config({}), dup)
+
+
+def test_a_stage_that_cannot_plan_is_reported_not_raised(tmp_path):
+    from tests.pipeline.stage_fixtures import PLAN_BUG, PLAN_USER
+
+    rep = run_stage(tmp_path, build_config({}), PLAN_BUG)
+    assert rep.failed == 1 and "KeyError" in rep.failures["(plan)"]
+    assert (tmp_path / "planbug" / "_items" / "_plan.failed.json").is_file()
+    rep = run_stage(tmp_path, build_config({}), PLAN_USER)
+    assert rep.failed == 1 and rep.failures["(plan)"].startswith("scan folder /x")
