@@ -176,6 +176,29 @@ class TraceConfig:
     spp: int = option(16, "samples per pixel (upper bound when adaptive)", min=1)
     lighting: str = option("scan", "light source: the scan's own radiance or the published four lights",
                            choices=("scan", "published"))
+    spp_min: int = option(4, "samples per pixel before the adaptive stop may end a pixel", min=1)
+    noise_target: float = option(0.03, "adaptive stop: standard error of a pixel's mean below this share of "
+                                 "its mean luminance; 0 = always take spp samples", min=0.0)
+    max_depth: int = option(3, "scattering events per path (inter-reflections between objects)", min=1)
+    edge_band: int = option(1, "pixels traced around the label mask for anti-aliased edges", min=0)
+    ao_samples: int = option(2, "ambient-occlusion rays per camera sample (0 = no AO pass)", min=0)
+    ao_distance: float = option(0.25, "ambient occlusion: occluders farther than this do not count, metres",
+                                min=0.0, min_exclusive=True)
+    radiance_scale: float = option(1.0, "room radiance = this x the room's linear (decoded sRGB) colours",
+                                   min=0.0, min_exclusive=True)
+    light_threshold: int = option(250, "room vertices with every sRGB channel >= this (0..255) are clipped "
+                                  "lamps/windows, sampled as lights", min=0, max=255)
+    light_gain: float = option(4.0, "radiance gain of clipped light regions (their true radiance is above the "
+                               "sensor's maximum); 0 = no light detection", min=0.0)
+    env_radiance: float = option(-1.0, "radiance of rays escaping through holes in the scan; negative = the "
+                                 "room's mean radiance")
+    published_power: float = option(1.0, "published lighting: radiance of a white floor at the room centre")
+    shadow_samples: int = option(32, "shadow-ratio hemisphere rays per room point (0 = no shadow pass)", min=0)
+    shadow_min_effect: float = option(0.005, "shadow ratio traced only where objects can change the light by "
+                                      "more than this share", min=0.0, min_exclusive=True, max=1.0)
+    denoise: str = option("off", "denoise the PBR pass: oidn = Intel Open Image Denoise (pyoidn), bilateral = "
+                          "joint bilateral filter, auto = oidn when installed", choices=("off", "auto", "oidn",
+                                                                                         "bilateral"))
 
 
 @dataclass(frozen=True)
@@ -184,6 +207,17 @@ class CompositeConfig:
 
     mode: str = option("full", "blend: published = PBR x AO inside the mask; full = edges, shadows, camera look",
                        choices=("published", "full"))
+    soft_edges: bool = option(True, "full mode: anti-aliased edges from the traced coverage (false = hard label mask)")
+    shadows: bool = option(True, "full mode: darken the room by the traced shadow ratio (differential rendering)")
+    blur_sigma: float = option(-1.0, "full mode: Gaussian blur of the objects, pixels; negative = match the "
+                               "photo's measured blur level")
+    noise_sigma: float = option(-1.0, "full mode: sensor noise added to the objects, gray levels (0..255); "
+                                "negative = measured from the photo; 0 = none")
+    exposure: float = option(1.0, "photo exposure relative to the scan's room colours (rendered radiance x "
+                             "this / trace.radiance_scale is encoded with the sRGB curve)", min=0.0,
+                             min_exclusive=True)
+    depth_fill: str = option("none", "depth output where the real depth is invalid: none = keep 0, room = the "
+                             "room mesh's rendered depth", choices=("none", "room"))
 
 
 @dataclass(frozen=True)
@@ -391,6 +425,21 @@ def dump_config(cfg: Config) -> str:
     for table, values in config_to_dict(cfg).items():
         lines.append(f"[{table}]")
         lines += [f"{k} = {_toml_value(v)}" for k, v in values.items()]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def template_toml(header: str = "") -> str:
+    """A complete config with every key at its default and its help as a comment above it."""
+    lines = [header.rstrip(), ""] if header else []
+    for table, cls in TABLES.items():
+        lines.append(f"# {cls.__doc__.strip().splitlines()[0]}")
+        lines.append(f"[{table}]")
+        for f in dataclasses.fields(cls):
+            m = f.metadata
+            extra = f" One of: {', '.join(map(repr, m['choices']))}." if m["choices"] else ""
+            lines.append(f"# {m['help']}.{extra}")
+            lines.append(f"{f.name} = {_toml_value(f.default)}")
         lines.append("")
     return "\n".join(lines)
 

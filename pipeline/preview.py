@@ -1,0 +1,146 @@
+"""``scansynth preview``: a contact sheet drawn from a written BOP dataset.
+
+Everything drawn comes from the files a user would read: the colour images, ``mask_visib/`` outlines,
+``scene_gt_info.json`` visible boxes and ``scene_gt.json`` poses projected with ``scene_camera.json``
+intrinsics (model axes of half the object's diameter from ``models/models_info.json``). A wrong pose,
+box or mask shows up as a misdrawn overlay, so the sheet also checks the annotations by eye.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import UserError
+from pipeline.io import atomic_write_image, read_json
+
+log = logging.getLogger(__name__)
+
+DEFAULT_NAME = "preview.png"
+PALETTE = np.array([(230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48),
+                    (145, 30, 180), (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 212)],
+                   np.uint8)
+
+
+def find_dataset(path: Path) -> Path:
+    """The BOP dataset folder for a run folder or a dataset folder."""
+    for cand in (path, path / "export" / "dataset"):
+        if (cand / "train_pbr").is_dir():
+            return cand
+    raise UserError(f"{path}: no BOP dataset found (looked for train_pbr/ in it and in export/dataset/); "
+                    f"run 'scansynth run CONFIG --out {path}' to the export stage first")
+
+
+def _images(dataset: Path) -> list[tuple[Path, int]]:
+    out = []
+    for scene_dir in sorted((dataset / "train_pbr").iterdir()):
+        gt = scene_dir / "scene_gt.json"
+        if gt.is_file():
+            out += [(scene_dir, int(k)) for k in sorted(read_json(gt), key=int)]
+    return out
+
+
+def draw_annotations(rgb: np.ndarray, scene_dir: Path, im_id: int, gts: list, infos: list, cam: dict,
+                     models_info: dict) -> np.ndarray:
+    """Overlay visible-mask outlines, visible boxes and projected pose axes on one image.
+
+    Parameters
+    ----------
+    rgb
+        (H, W, 3) uint8 image.
+    gts, infos, cam
+        This image's entries of scene_gt.json, scene_gt_info.json and scene_camera.json.
+    models_info
+        models_info.json (mm).
+    """
+    import cv2
+
+    img = np.ascontiguousarray(rgb[..., ::-1].copy())  # BGR for OpenCV drawing
+    K = np.asarray(cam["cam_K"], np.float64).reshape(3, 3)
+    for gt_id, (gt, info) in enumerate(zip(gts, infos)):
+        colour = tuple(int(c) for c in PALETTE[gt_id % len(PALETTE)][::-1])
+        mpath = scene_dir / "mask_visib" / f"{im_id:06d}_{gt_id:06d}.png"
+        if mpath.is_file():
+            mask = cv2.imread(str(mpath), cv2.IMREAD_GRAYSCALE)
+            contours, _ = cv2.findContours((mask > 0).astype(np.uint8), cv2.RETR_EXTERNAL,
+                                           cv2.CHAIN_APPROX_SIMPLE)
+            cv2.drawContours(img, contours, -1, colour, 1)
+        x, y, w, h = info.get("bbox_visib", [-1, -1, -1, -1])
+        if w > 0 and h > 0:
+            cv2.rectangle(img, (x, y), (x + w - 1, y + h - 1), colour, 1)
+        R = np.asarray(gt["cam_R_m2c"], np.float64).reshape(3, 3)
+        t = np.asarray(gt["cam_t_m2c"], np.float64).reshape(3)
+        diameter = float(models_info.get(str(gt["obj_id"]), {}).get("diameter", 100.0))
+        pts = np.vstack([np.zeros(3), np.eye(3) * diameter * 0.5]) @ R.T + t  # mm, camera frame
+        if np.all(pts[:, 2] > 1e-3):
+            uv = (pts @ K.T)[:, :2] / pts[:, 2:3]
+            o = tuple(np.round(uv[0]).astype(int))
+            for axis, c in zip(uv[1:], ((0, 0, 255), (0, 255, 0), (255, 0, 0))):  # x red, y green, z blue
+                cv2.line(img, o, tuple(np.round(axis).astype(int)), c, 1, cv2.LINE_AA)
+    return img[..., ::-1]
+
+
+def contact_sheet(dataset: Path, *, max_images: int = 12, columns: int = 4, tile_width: int = 320) -> np.ndarray:
+    """(H, W, 3) uint8 sheet of up to ``max_images`` annotated images, evenly spread over the dataset."""
+    import cv2
+
+    images = _images(dataset)
+    if not images:
+        raise UserError(f"{dataset}: the dataset has no images (every frame was rejected?); "
+                        f"see run.json for the reasons")
+    pick = np.unique(np.linspace(0, len(images) - 1, min(max_images, len(images))).round().astype(int))
+    models_info = {}
+    mi = dataset / "models" / "models_info.json"
+    if mi.is_file():
+        models_info = read_json(mi)
+    cache: dict[Path, tuple] = {}
+    tiles = []
+    for idx in pick:
+        scene_dir, im_id = images[idx]
+        if scene_dir not in cache:
+            cache[scene_dir] = (read_json(scene_dir / "scene_gt.json"),
+                                read_json(scene_dir / "scene_gt_info.json"),
+                                read_json(scene_dir / "scene_camera.json"))
+        gt, info, cam = cache[scene_dir]
+        key = str(im_id)
+        rgb_path = next((p for p in (scene_dir / "rgb" / f"{im_id:06d}{ext}" for ext in (".jpg", ".png"))
+                         if p.is_file()), None)
+        if rgb_path is None:
+            raise UserError(f"{scene_dir}/rgb: image {im_id:06d} is listed in scene_gt.json but missing")
+        rgb = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR)[..., ::-1]
+        tile = draw_annotations(rgb, scene_dir, im_id, gt[key], info.get(key, []), cam[key], models_info)
+        h = int(round(tile.shape[0] * tile_width / tile.shape[1]))
+        tile = cv2.resize(tile, (tile_width, h), interpolation=cv2.INTER_AREA)
+        label = f"{scene_dir.name}/{im_id:06d}"
+        cv2.putText(tile, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+        tiles.append(tile)
+    th = max(t.shape[0] for t in tiles)
+    rows = []
+    for r in range(0, len(tiles), columns):
+        row = [np.pad(t, ((0, th - t.shape[0]), (0, 0), (0, 0))) for t in tiles[r:r + columns]]
+        row += [np.zeros((th, tile_width, 3), np.uint8)] * (columns - len(row))
+        rows.append(np.concatenate(row, axis=1))
+    return np.concatenate(rows, axis=0)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("path", type=Path, help="run folder or BOP dataset folder")
+    p.add_argument("--out", type=Path, default=None,
+                   help=f"PNG to write (default: {DEFAULT_NAME} in the run folder)")
+    p.add_argument("--max-images", type=int, default=12, help="images on the sheet (default 12)")
+
+
+def run(args: argparse.Namespace) -> int:
+    import sys
+
+    if args.max_images < 1:
+        raise UserError(f"--max-images {args.max_images}: must be at least 1")
+    dataset = find_dataset(args.path.resolve())
+    out = args.out or (args.path / DEFAULT_NAME)
+    atomic_write_image(out, contact_sheet(dataset, max_images=args.max_images))
+    if not args.quiet:
+        print(f"preview: {out.resolve()}", file=sys.stderr)
+    return 0
