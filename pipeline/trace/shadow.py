@@ -1,0 +1,138 @@
+"""Shadow-ratio pass: how much light a room point loses (or gains) because the objects are there.
+
+For a room pixel, the room point is where the pixel's centre ray meets the room. One set of
+cosine-weighted hemisphere rays is cast from it against the room alone, giving the radiance that
+arrives without objects (the room's emission, or the environment for escaping rays, plus the direct
+light of point lights in the published mode). The same rays are then tested against the objects only
+up to the room hit: a blocked ray brings, instead of the room's light, the object's albedo times the
+mean light at that point (a one-bounce estimate of the light the object sends on). The ratio
+
+    shadow_ratio = E_with_objects / E_without_objects
+
+is 1 where the objects change nothing. It is traced only where it can differ from 1 by more than
+``min_effect``: points whose distance ``d`` to an object's bounding sphere centre satisfies
+``(r / d)^2 >= min_effect`` (``(r / d)^2`` bounds the cosine-weighted share of the hemisphere a sphere
+of radius ``r`` can cover).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from pipeline.trace.intersect import EmbreeIntersector, Intersector, offset_origins
+from pipeline.trace.pbr import Camera, primary_rays
+from pipeline.trace.sampling import cosine_hemisphere, to_world
+from pipeline.trace.scene import TraceScene
+
+log = logging.getLogger(__name__)
+
+
+def instance_spheres(scene: TraceScene) -> tuple[np.ndarray, np.ndarray]:
+    """Bounding spheres of the object instances: centres (N, 3) and radii (N,) (bounding-box based)."""
+    n = scene.num_instances
+    c = np.zeros((n, 3))
+    r = np.zeros(n)
+    for k in range(n):
+        v = scene.vertices[np.unique(scene.faces[scene.tri_inst == k + 1])]
+        if len(v):
+            lo, hi = v.min(axis=0), v.max(axis=0)
+            c[k] = 0.5 * (lo + hi)
+            r[k] = 0.5 * np.linalg.norm(hi - lo)
+    return c, r
+
+
+def split_intersectors(scene: TraceScene) -> tuple[Intersector, Intersector]:
+    """Intersectors of the room alone and of the objects alone (triangle ids offset by the room's)."""
+    nr = scene.num_room_tris
+    return (EmbreeIntersector(scene.vertices, scene.faces[:nr]),
+            EmbreeIntersector(scene.vertices, scene.faces[nr:]))
+
+
+def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.random.Generator, *,
+                 samples: int = 32, min_effect: float = 0.005, eps: float = 1e-4,
+                 room_isect: Intersector | None = None, obj_isect: Intersector | None = None) -> np.ndarray:
+    """Shadow ratio per pixel, (H, W) float32; 1 on object pixels and wherever nothing changes.
+
+    Parameters
+    ----------
+    scene : the frame's scene (room + objects)
+    camera : the frame's camera
+    labels : (H, W) uint16 object labels (0 = room); labelled pixels are not room pixels
+    samples : hemisphere rays per traced room point
+    min_effect : smallest possible change worth tracing (see the module docstring)
+    room_isect, obj_isect : prebuilt intersectors of :func:`split_intersectors` (built when None)
+    """
+    H, W = camera.height, camera.width
+    out = np.ones(H * W, np.float32)
+    if scene.num_instances == 0 or scene.num_room_tris == 0:
+        return out.reshape(H, W)
+    if room_isect is None or obj_isect is None:
+        room_isect, obj_isect = split_intersectors(scene)
+    pix = np.flatnonzero(np.asarray(labels).ravel() == 0)
+    o, d = primary_rays(camera, pix, np.full((pix.size, 2), 0.5))
+    h = scene.intersector.intersect(o, d)
+    room_hit = h.hit & (scene.tri_inst[np.maximum(h.prim, 0)] == 0)
+    pix, d, h_t = pix[room_hit], d[room_hit], h.t[room_hit]
+    prim, u, v = h.prim[room_hit], h.u[room_hit], h.v[room_hit]
+    f = scene.faces[prim]
+    V = scene.vertices
+    p0, p1, p2 = V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]
+    p = ((1 - u - v)[:, None] * p0 + u[:, None] * p1 + v[:, None] * p2).astype(np.float32)
+    ng = np.cross(p1 - p0, p2 - p0)
+    ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-20)
+    ng = np.where((np.einsum("ij,ij->i", ng, d) > 0)[:, None], -ng, ng).astype(np.float32)
+    c, r = instance_spheres(scene)
+    dist = np.linalg.norm(p[:, None, :] - c[None], axis=2)
+    near = ((r[None] / np.maximum(dist, 1e-9)) ** 2 >= min_effect).any(axis=1)
+    pix, p, ng = pix[near], p[near], ng[near]
+    n = pix.size
+    if n == 0:
+        return out.reshape(H, W)
+    pr = np.repeat(np.arange(n), samples)
+    uu = rng.random((2, pr.size))
+    dl, _ = cosine_hemisphere(uu[0], uu[1])
+    dw = to_world(dl, ng[pr].astype(np.float64)).astype(np.float32)
+    org = offset_origins(p[pr], ng[pr], dw, eps)
+    hr = room_isect.intersect(org, dw)
+    E = scene.emission
+    Lr = np.tile(scene.env_radiance.astype(np.float64), (pr.size, 1))
+    hit = hr.hit
+    if hit.any():
+        fr = scene.faces[hr.prim[hit]]
+        a, b = hr.u[hit][:, None], hr.v[hit][:, None]
+        Lr[hit] = (1 - a - b) * E[fr[:, 0]] + a * E[fr[:, 1]] + b * E[fr[:, 2]]
+    ho = obj_isect.intersect(org, dw, hr.t)
+    blocked = ho.hit
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    L0 = Lr @ lum
+    E0 = np.bincount(pr, weights=L0, minlength=n) / samples
+    Lw = np.where(blocked, 0.0, L0)
+    if blocked.any():
+        fo = scene.faces[ho.prim[blocked] + scene.num_room_tris]
+        a, b = ho.u[blocked][:, None], ho.v[blocked][:, None]
+        alb = (1 - a - b) * scene.albedo[fo[:, 0]] + a * scene.albedo[fo[:, 1]] + b * scene.albedo[fo[:, 2]]
+        Lw[blocked] = (alb @ lum) * E0[pr[blocked]]
+    E1 = np.bincount(pr, weights=Lw, minlength=n) / samples
+    pl = scene.point_lights
+    for k in range(pl.count):
+        dv = pl.position[k] - p
+        dd = np.linalg.norm(dv, axis=1)
+        wl = (dv / np.maximum(dd, 1e-12)[:, None]).astype(np.float32)
+        cos = np.einsum("ij,ij->i", wl, ng)
+        ok = np.flatnonzero(cos > 0)
+        if ok.size == 0:
+            continue
+        org_l = offset_origins(p[ok], ng[ok], wl[ok], eps)
+        tmax = (dd[ok] - 2 * eps).astype(np.float32)
+        free = ~room_isect.occluded(org_l, wl[ok], tmax)
+        ok = ok[free]
+        org_l, tmax = org_l[free], tmax[free]
+        e = (pl.intensity[k] @ lum) * cos[ok] / dd[ok] ** 2 / np.pi  # as radiance from a white surface
+        E0[ok] += e
+        E1[ok] += np.where(obj_isect.occluded(org_l, wl[ok], tmax), 0.0, e)
+    ratio = np.where(E0 > 0, E1 / np.where(E0 > 0, E0, 1.0), 1.0)
+    out[pix] = np.clip(ratio, 0.0, 2.0)
+    log.debug("shadow ratio: %d room points traced, %d rays", n, pr.size)
+    return out.reshape(H, W)

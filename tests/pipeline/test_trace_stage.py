@@ -1,0 +1,225 @@
+"""Tests of the trace stage (pipeline/trace/stage.py), the shadow-ratio pass and the denoiser.
+
+The run folder is built here from the agreed save APIs (ingest's scan and library writers, raster's
+frame files) with small analytic meshes, so these tests do not depend on TSDF fusion or physics.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.config import build_config
+from pipeline.errors import InputError
+from pipeline.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, load_npz
+from pipeline.runner import StageContext
+from pipeline.trace.denoise import denoise, joint_bilateral, oidn_available
+from pipeline.trace.pbr import Camera
+from pipeline.trace.scene import ObjectInstance, build_scene
+from pipeline.trace.shadow import shadow_ratio
+from pipeline.trace.shapes import box_room, look_at, uv_sphere
+from pipeline.types import ObjectModel, Scan
+
+# --------------------------------------------------------------------------------------------------
+# Shadow ratio
+# --------------------------------------------------------------------------------------------------
+
+
+def _shadow_scene(albedo: float):
+    rv, rf = box_room((-3, -3, 0), (3, 3, 3), n=6)
+    v, f, n = uv_sphere(0.3, (0, 0, 1.0), n_lat=24, n_lon=48)
+    ob = ObjectInstance(vertices=v, faces=f, normals=n, albedo=np.full((len(v), 3), albedo, np.float32))
+    sc = build_scene(rv, rf, None, [ob], room_linear_radiance=np.ones((len(rv), 3)))
+    K = np.array([[80.0, 0, 31.5], [0, 80.0, 23.5], [0, 0, 1]])
+    cam = Camera(K=K, T_c2w=look_at((0, -2.9, 0.25), (0, 0, 0)), width=64, height=48)
+    return sc, cam
+
+
+def _pixel_of(cam: Camera, p) -> tuple[int, int]:
+    T = np.linalg.inv(cam.T_c2w)
+    q = T[:3, :3] @ np.asarray(p, float) + T[:3, 3]
+    x = cam.K @ (q / q[2])
+    return int(round(x[1])), int(round(x[0]))
+
+
+@pytest.mark.parametrize("albedo", [0.0, 0.5])
+def test_shadow_ratio_under_a_sphere_matches_the_blocked_solid_angle(albedo):
+    sc, cam = _shadow_scene(albedo)
+    y, x = _pixel_of(cam, (0, 0, 0))
+    labels = np.ones((48, 64), np.uint16)
+    labels[y, x] = 0  # trace only the floor point under the sphere
+    sr = shadow_ratio(sc, cam, labels, np.random.default_rng(0), samples=20_000)
+    share = (0.3 / 1.0) ** 2  # cosine-weighted share of the hemisphere a sphere right above covers
+    assert sr[y, x] == pytest.approx(1 - (1 - albedo) * share, abs=0.01)
+
+
+def test_shadow_ratio_is_one_far_away_and_without_objects():
+    sc, cam = _shadow_scene(0.0)
+    labels = np.zeros((48, 64), np.uint16)
+    sr = shadow_ratio(sc, cam, labels, np.random.default_rng(0), samples=8, min_effect=0.05)
+    y, x = _pixel_of(cam, (1.2, 1.0, 0.0))  # floor point 1.85 m from the sphere: (r/d)^2 < 0.05
+    assert sr[y, x] == 1.0 and (sr == 1.0).mean() > 0.5 and sr.min() < 0.99
+    lab = np.ones((48, 64), np.uint16)  # every pixel an object pixel: nothing to trace
+    assert (shadow_ratio(sc, cam, lab, np.random.default_rng(0)) == 1).all()
+    empty = build_scene(sc.vertices[: len(sc.vertices)], sc.faces[: sc.num_room_tris], None, [])
+    assert (shadow_ratio(empty, cam, labels, np.random.default_rng(0)) == 1).all()
+
+
+# --------------------------------------------------------------------------------------------------
+# Denoiser
+# --------------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("method", ["bilateral", "oidn"])
+def test_denoise_lowers_noise_and_touches_only_the_mask(method):
+    if method == "oidn" and not oidn_available():
+        pytest.skip("pyoidn is not installed (optional denoiser)")
+    rng = np.random.default_rng(0)
+    H, W = 40, 50
+    truth = np.zeros((H, W, 3), np.float32)
+    truth[..., 0] = np.linspace(0.2, 0.8, W)[None]
+    truth[..., 1] = 0.5
+    truth[..., 2] = 0.3
+    noisy = (truth * rng.gamma(4.0, 0.25, (H, W, 1))).astype(np.float32)
+    albedo = np.full((H, W, 3), 0.5, np.float32)
+    normal = np.zeros((H, W, 3), np.float32)
+    normal[..., 2] = 1
+    mask = np.zeros((H, W), bool)
+    mask[5:35, 5:45] = True
+    out = denoise(noisy, albedo, normal, mask, method=method)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(out[~mask], noisy[~mask])
+    err_in = np.sqrt(np.mean((noisy[mask] - truth[mask]) ** 2))
+    err_out = np.sqrt(np.mean((out[mask] - truth[mask]) ** 2))
+    assert err_out < 0.5 * err_in
+
+
+def test_joint_bilateral_keeps_albedo_edges():
+    H, W = 20, 20
+    albedo = np.full((H, W, 3), 0.2, np.float32)
+    albedo[:, 10:] = 0.9
+    color = albedo * 1.5  # noise-free: uniform light
+    normal = np.zeros((H, W, 3), np.float32)
+    normal[..., 2] = 1
+    np.testing.assert_allclose(joint_bilateral(color, albedo, normal), color, rtol=1e-5)
+
+
+def test_denoise_rejects_unknown_method():
+    z = np.zeros((4, 4, 3), np.float32)
+    with pytest.raises(ValueError, match="denoise method"):
+        denoise(z, z, z, np.ones((4, 4), bool), method="magic")
+
+
+# --------------------------------------------------------------------------------------------------
+# Stage
+# --------------------------------------------------------------------------------------------------
+
+def _make_run(run: Path, *, obj_id_in_frame: int = 1) -> None:
+    """A run folder with one ingested scene (a box room), a library of one sphere, one raster frame."""
+    from pipeline.ingest import save_scan
+    from pipeline.objects import save_library
+    from pipeline.scanformats.mesh import ply_bytes
+    from pipeline.trace.pbr import primary_rays
+
+    scene_dir = run / "ingest" / "room"
+    rv, rf = box_room((-2, -2, 0), (2, 2, 2.5), n=6)
+    col = np.full((len(rv), 3), 180, np.uint8)
+    col[rv[:, 2] > 2.49] = 255  # clipped ceiling: detected as a light
+    atomic_write_bytes(scene_dir / "room.ply", ply_bytes(rv, rf, col))
+    W, H = 40, 30
+    K = np.array([[36.0, 0, 19.5], [0, 36.0, 14.5], [0, 0, 1]])
+    T = look_at((0, -1.8, 0.6), (0, 0, 0.25))
+    scan = Scan(name="room", root=str(scene_dir), format="7scenes", frame_ids=np.arange(1), color_paths=("",),
+                depth_paths=("",), width=W, height=H, K=K[None], T_c2w=T[None], depth_width=W, depth_height=H,
+                depth_K=K[None], depth_scale=0.001, depth_registered=True, up_w=np.array([0, 0, 1.0]),
+                mesh_path=str(scene_dir / "room.ply"))
+    save_scan(scene_dir, scan)
+    v, f, n = uv_sphere(0.25, n_lat=16, n_lon=32)
+    model = ObjectModel(obj_id=1, name="ball", source_path="", vertices=v, faces=f, normals=n,
+                        vertex_colors=np.full((len(v), 3), 200, np.uint8), uv=None, texture=None)
+    save_library(run / "ingest" / "objects", [model])
+    # raster frame: labels from the true silhouette (ball resting on the floor)
+    t_m2w = np.array([0.0, 0.0, 0.25])
+    ob = ObjectInstance(vertices=v + t_m2w, faces=f, normals=n, albedo=np.ones((len(v), 3), np.float32))
+    sc = build_scene(rv, rf, None, [ob])
+    cam = Camera(K=K, T_c2w=T, width=W, height=H)
+    o, d = primary_rays(cam, np.arange(W * H), np.full((W * H, 2), 0.5))
+    h = sc.intersector.intersect(o, d)
+    labels = np.where(h.hit, sc.tri_inst[np.maximum(h.prim, 0)], 0).astype(np.uint16).reshape(H, W)
+    T_w2c = np.linalg.inv(T)
+    stem = run / "raster" / "room" / "drop0000" / "f000000"
+    atomic_save_npz(stem.with_suffix(".npz"), labels=labels, depth=np.zeros((H, W), np.float32))
+    atomic_write_json(stem.with_suffix(".json"), {
+        "status": "ok", "width": W, "height": H, "K": K.tolist(), "T_c2w": T.tolist(),
+        "instances": [{"inst_id": 0, "obj_id": obj_id_in_frame, "R_m2c": T_w2c[:3, :3].tolist(),
+                       "t_m2c": (T_w2c[:3, :3] @ t_m2w + T_w2c[:3, 3]).tolist()}]})
+
+
+def _ctx(run: Path, **trace) -> StageContext:
+    return StageContext(run_dir=run, cfg=build_config({"trace": trace}), stage="trace")
+
+
+def test_stage_writes_every_pass_with_the_agreed_names_and_is_deterministic(tmp_path):
+    from pipeline.trace.stage import STAGE, output_path
+
+    run = tmp_path / "run"
+    _make_run(run)
+    ctx = _ctx(run, spp=8, shadow_samples=8)
+    items = STAGE.plan(ctx)
+    assert [it.key for it in items] == ["room/drop0000/f000000"]
+    res = STAGE.run_item(ctx, items[0])
+    out = output_path(run, "room", 0, 0)
+    a = load_npz(out)
+    assert set(a) == {"pbr", "ao", "coverage", "shadow_ratio", "albedo", "normal", "spp"}
+    labels = load_npz(run / "raster/room/drop0000/f000000.npz")["labels"]
+    H, W = labels.shape
+    assert a["pbr"].shape == (H, W, 3) and a["pbr"].dtype == np.float32
+    for k in ("ao", "coverage", "shadow_ratio"):
+        assert a[k].shape == (H, W) and a[k].dtype == np.float32
+    from scipy.ndimage import binary_dilation
+
+    band = binary_dilation(labels > 0, np.ones((3, 3), bool))
+    assert (a["pbr"][~band] == 0).all() and (a["coverage"][~band] == 0).all()
+    assert (a["coverage"][labels > 0] > 0.5).mean() > 0.9
+    assert a["pbr"][labels > 0].mean() > 0.05 and np.isfinite(a["pbr"]).all()
+    assert 0 <= a["ao"].min() and a["ao"].max() <= 1 and a["ao"][labels > 0].mean() < 1  # floor occludes
+    assert (a["shadow_ratio"][labels > 0] == 1).all() and a["shadow_ratio"].min() < 0.9  # contact shadow
+    assert res["object_px"] == int((labels > 0).sum()) and res["rays"] > 0
+    first = out.read_bytes()
+    STAGE.run_item(ctx, items[0])
+    assert out.read_bytes() == first
+
+
+def test_stage_prefers_preps_room_trace_mesh(tmp_path):
+    from pipeline.scanformats.mesh import ply_bytes
+    from pipeline.trace.stage import STAGE, room_mesh_path
+    from pipeline.ingest import load_scan
+
+    run = tmp_path / "run"
+    _make_run(run)
+    scan = load_scan(run, "room")
+    assert room_mesh_path(run, scan) == scan.mesh_path
+    rv, rf = box_room((-2, -2, 0), (2, 2, 2.5), n=2)
+    atomic_write_bytes(run / "prep/room/room_trace.ply", ply_bytes(rv, rf, np.zeros((len(rv), 3), np.uint8)))
+    assert room_mesh_path(run, scan) == str(run / "prep/room/room_trace.ply")
+    ctx = _ctx(run, spp=4, shadow_samples=0, ao_samples=0, env_radiance=0.0)
+    STAGE.run_item(ctx, STAGE.plan(ctx)[0])
+    a = load_npz(run / "trace/room/drop0000/f000000.npz")
+    assert a["pbr"].max() == 0  # the black trace room lights nothing
+
+
+def test_stage_names_an_unknown_object_id(tmp_path):
+    from pipeline.trace.stage import STAGE
+
+    run = tmp_path / "run"
+    _make_run(run, obj_id_in_frame=7)
+    ctx = _ctx(run)
+    with pytest.raises(InputError, match="object id 7"):
+        STAGE.run_item(ctx, STAGE.plan(ctx)[0])
+
+
+def test_stage_plans_nothing_without_raster_output(tmp_path):
+    from pipeline.trace.stage import STAGE
+
+    assert STAGE.plan(_ctx(tmp_path)) == []
