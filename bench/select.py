@@ -16,7 +16,8 @@ Labelled set
 * Synthetic: the known-blur frames of ``pipeline.synthscan.make_scan`` when that function exists
   (skipped with a note otherwise).
 
-The positive class is *blurred* (what the stage must find and drop). Methods run through
+The chart's F1 is over the pooled set (real + synthetic); the JSON has each part apart. The positive
+class is *blurred* (what the stage must find and drop). Methods run through
 :func:`pipeline.select.select_frames` with diversity off, exactly as the stage runs them. Timing:
 scoring a decoded 640x480 RGB frame (JPEG decoding, the same for every method, reported apart),
 fastest of 6 interleaved passes over the 100 frames, on this shared 2-core machine; the thesis
@@ -160,20 +161,46 @@ def predictions(images: list[np.ndarray], poses: np.ndarray) -> tuple[dict[str, 
     return out, flag
 
 
-def synthetic_part(res: BenchResult, seq_preds: dict) -> None:
+def synthetic_sequences(n_scans: int, frames: int, notes: list[str]) -> list[tuple[list, np.ndarray, np.ndarray, list]]:
+    """Known-blur synthetic scans of ``pipeline.synthscan.make_scan`` (7-Scenes layout, 640x480):
+    (images, T_c2w, labels, kinds) per scan; empty, with a note, when make_scan is not there."""
+    import json
+    import tempfile
+
+    import cv2
+
     try:
-        from pipeline.synthscan import make_scan  # noqa: F401
+        from pipeline.synthscan import make_scan
     except ImportError as e:
-        res.notes.append(f"synthetic scans skipped: pipeline.synthscan.make_scan not importable ({e})")
-        return
-    res.notes.append("synthetic scans: make_scan exists but its known-blur ground truth is not wired into "
-                     "this benchmark yet (see the report)")
+        notes.append(f"synthetic scans skipped: pipeline.synthscan.make_scan not importable ({e})")
+        return []
+    out = []
+    with tempfile.TemporaryDirectory(prefix="bench_select_") as tmp:
+        for seed in range(n_scans):
+            root = Path(make_scan(Path(tmp) / f"s{seed}", layout="7scenes", seed=seed, width=640, height=480,
+                                  frames=frames))
+            gt = json.loads((root / "ground_truth" / "scan.json").read_text())
+            info = gt["frames_info"]
+            imgs = [cv2.cvtColor(cv2.imread(str(root / f["color"])), cv2.COLOR_BGR2RGB) for f in info]
+            T = np.asarray([f["T_c2w"] for f in info], dtype=np.float64)
+            kinds = [f"{f['blur']['kind']}{f['blur']['strength_px']:.0f}" if f["blur"]["kind"] != "none"
+                     else "sharp" for f in info]
+            out.append((imgs, T, np.asarray([f["blur"]["kind"] != "none" for f in info]), kinds))
+    notes.append(f"synthetic scans: make_scan seeds 0..{n_scans - 1}, {frames} frames each, 640x480, 7scenes "
+                 f"layout; labels from ground_truth/scan.json (motion 6-18 px extent, defocus radius 2-5 px)")
+    return out
+
+
+def _round(x: float | None) -> float | None:
+    return None if x is None else round(float(x), 4)
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.select", description=__doc__.split("\n")[0])
     ap.add_argument("--sequences", type=int, default=3, help="seeded blur sequences of the 100 frames")
     ap.add_argument("--frames", type=int, default=None, help="use only the first N frames")
+    ap.add_argument("--synthetic", type=int, default=2, help="synthetic make_scan scans (0 = none)")
+    ap.add_argument("--synthetic-frames", type=int, default=50, help="frames per synthetic scan")
     ap.add_argument("--out", type=Path, default=None, help="results folder (default bench/results)")
     args = ap.parse_args(argv)
 
@@ -228,13 +255,30 @@ def main(argv: list[str] | None = None) -> int:
     for kind in KERNELS:
         imgs, _, _ = make_sequence(frames, 0, (kind,), 1.0)
         flagged_all[kind] = bool(predictions(imgs, poses)[1])
+    source_all = ["real"] * len(kinds_all)
+    synth_flags = []
+    for imgs, T, lab, kinds in synthetic_sequences(args.synthetic, args.synthetic_frames, res.notes):
+        p, flag = predictions(imgs, T)
+        synth_flags.append(flag)
+        truth_all.append(lab)
+        kinds_all += kinds
+        share_all += [-1.0] * len(kinds)
+        source_all += ["synthetic"] * len(kinds)
+        for k, v in p.items():
+            preds_all.setdefault(k, []).append(v)
     truth = np.concatenate(truth_all)
     kinds = np.asarray(kinds_all)
     shares = np.asarray(share_all)
+    source = np.asarray(source_all)
     table = {}
     for name, plist in preds_all.items():
         pred = np.concatenate(plist)
-        m = prf(pred, truth)
+        m = prf(pred, truth)      # pooled: real + synthetic
+        m["f1_real"] = prf(pred[source == "real"], truth[source == "real"])["f1"]
+        if (source == "synthetic").any():
+            syn = source == "synthetic"
+            m["f1_synthetic"] = prf(pred[syn], truth[syn])["f1"]
+            m["recall_synthetic"] = prf(pred[syn], truth[syn])["recall"]
         m["recall_by_kernel"] = {k: float(pred[kinds == k].mean()) for k in KERNELS}
         m["false_alarm_rate_sharp"] = float(pred[kinds == "sharp"].mean())
         m["f1_by_share"] = {f"{sh:.1f}": prf(pred[shares == sh], truth[shares == sh])["f1"] for sh in SHARES}
@@ -256,7 +300,13 @@ def main(argv: list[str] | None = None) -> int:
         "kernels": list(KERNELS), "decode_jpeg_ms": round(decode_ms, 2),
         "ms_per_frame": {k: round(v, 3) for k, v in speed.items()},
         "default_method": default,
+        "labelled_real": int((source == "real").sum()), "labelled_synthetic": int((source == "synthetic").sum()),
         "f1_default": round(table[default]["f1"], 4),
+        "f1_default_real": round(table[default]["f1_real"], 4),
+        "f1_thesis_real": round(table["thesis"]["f1_real"], 4),
+        "f1_default_synthetic": _round(table[default].get("f1_synthetic")),
+        "f1_thesis_synthetic": _round(table["thesis"].get("f1_synthetic")),
+        "all_blurred_flag_on_synthetic_scans": f"{sum(synth_flags)} of {len(synth_flags)}",
         "f1_thesis": round(table["thesis"]["f1"], 4),
         "f1_thesis_literal_0_1": round(table["thesis (edge map 0-1, literal)"]["f1"], 4),
         "speed_ratio_default_vs_thesis": round(speed["relative"] / speed["thesis"], 3),
@@ -279,12 +329,12 @@ def main(argv: list[str] | None = None) -> int:
         "thesis = edge map 0..255 (OpenCV Canny output); the literal 0..1 reading keeps no real frame",
         "untouched 7-Scenes frames count as sharp although a few carry real Kinect motion blur",
     ]
-    synthetic_part(res, preds_all)
     out = res.write(args.out) if args.out else res.write()
     for name in sorted(table, key=lambda k: -table[k]["f1"]):
         m = table[name]
         print(f"{name:34s} F1 {m['f1']:.3f}  P {m['precision']:.3f}  R {m['recall']:.3f}  "
-              f"kept-P {m['kept_precision']:.3f} F1-sharp {m['f1_sharp']:.3f}")
+              f"kept-P {m['kept_precision']:.3f} F1-sharp {m['f1_sharp']:.3f}  real {m['f1_real']:.3f} "
+              f"synth {m.get('f1_synthetic', float('nan')):.3f}")
     print("ms/frame", res.figures["ms_per_frame"], "decode", round(decode_ms, 2))
     print("by share: default", res.figures["f1_default_by_share"], "thesis", res.figures["f1_thesis_by_share"])
     print("all_blurred flag: mixed", res.figures["all_blurred_flag_on_mixed_sequences"], "fully blurred",

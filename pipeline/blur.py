@@ -58,10 +58,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from pipeline.tolerances import SELECT_TEXTURELESS_STD
+
 log = logging.getLogger(__name__)
 
 WORK_WIDTH = 320            # pixels; frames are scored at this width (a 640x480 frame is halved)
-TEXTURELESS_STD = 2.0       # gray levels (0..255) of std at work resolution; below: no detail to judge
+TEXTURELESS_STD = SELECT_TEXTURELESS_STD   # gray levels (0..255) of std at work resolution (see tolerances)
 CANNY_LOW, CANNY_HIGH = 150, 250   # thesis thresholds
 THESIS_EDGE_MIN = 0.5       # thesis candidate threshold on the mean edge value
 BLUR_EFFECT_H = 11          # Crete et al.'s re-blur filter length, pixels (skimage's default)

@@ -299,7 +299,7 @@ def load_selection(run_dir: str | Path, scene: str) -> np.ndarray:
     path = Path(run_dir) / "select" / scene / SELECTION_FILE
     if not path.is_file():
         raise InputError(f"{path} does not exist: run the select stage for scene {scene!r} first "
-                         f"(scansynth run --stages select)")
+                         f"('scansynth select {run_dir}')")
     return np.asarray(read_json(path)["kept"], dtype=np.int64)
 
 

@@ -13,3 +13,8 @@ RASTER_MASK_IOU_MIN = 0.995
 # Median |raster depth - ray-cast depth| in metres: the 24-bit depth buffer resolves ~0.1 mm at 4 m
 # with znear = 1 cm; 1 mm leaves room for float32 vertex transforms.
 RASTER_DEPTH_MEDIAN_M = 1e-3
+
+# Frame selection (issue 6): a frame whose gray-level std at the 320-px work resolution is below this
+# (gray levels, 0..255) has no detail that blur could remove (a blank wall, a lens cap): it is kept as
+# "textureless" and never used as a sharpness reference. 2 levels is just above 8-bit sensor noise.
+SELECT_TEXTURELESS_STD = 2.0
