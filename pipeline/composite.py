@@ -1,0 +1,383 @@
+"""The ``composite`` stage: the rendered objects fused into the real photo, and the composite depth.
+
+Two blends (``composite.mode``):
+
+``published``
+    The published method, kept as the baseline: inside the occlusion mask (raster labels > 0) the
+    PBR colour times the AO, outside it the real pixel. The tracer's PBR pass is premultiplied by
+    coverage, so the colour is un-premultiplied first (a hard mask over a premultiplied edge would
+    darken the silhouette, a flaw the published method did not have).
+
+``full`` (default)
+    * soft, anti-aliased edges: ``out = pbr + (1 - coverage) * background`` with the traced coverage
+      (premultiplied alpha), restricted to the raster mask grown by ``trace.edge_band`` pixels so that
+      objects the raster hid behind real geometry (real-depth fusion) stay hidden;
+    * shadows and contact darkening by differential rendering: ``background = photo x shadow_ratio``
+      in linear light;
+    * the camera's look (:mod:`pipeline.camera_look`): the same tone curve as the tracer's decode of
+      the room colours (``linear_to_srgb(radiance x exposure / trace.radiance_scale)``), the photo's
+      measured blur level applied to the object layer (and the shadow ratio) in linear light, and the
+      photo's measured sensor noise added to the object pixels from the item's seeded generator.
+    No AO factor: the path tracer's radiance already holds the objects' self-occlusion.
+
+Pixels the objects change in no way (coverage 0 after blur, shadow ratio 1) are the photo's bytes,
+exactly. Every mode writes at the raster frame's resolution, pixel-aligned with its labels and masks;
+annotations are the raster stage's and do not depend on the mode.
+
+Outputs per (scene, drop, frame) item, where the export stage reads them:
+``RUN/composite/<scene>/drop<NNNN>/f<frame:06d>.png`` (RGB uint8) and ``..._depth.npz`` with ``depth``
+(H, W) float32 metres: the real depth with the objects' depth where they are visible (0 = invalid;
+``composite.depth_fill = "room"`` fills invalid real depth from the room mesh's rendered depth).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipeline import camera_look as cl
+from pipeline.errors import InputError
+from pipeline.runner import Item, Stage, StageContext
+
+log = logging.getLogger(__name__)
+
+_COVER_EPS = 1e-3        # coverage below this is "no object" (Monte Carlo coverage is k / spp)
+_FILL_RADIUS = 2         # pixels: window radius of the normalised-convolution colour fill
+_BLUR_CROP_MARGIN = 8    # pixels around the objects where the photo's blur and noise are measured
+_NOISE_BAND = (2, 12)    # pixels: ring around the objects (inner, outer) where photo noise is measured
+_SHADOW_RATIO_MAX = 4.0  # shadow ratios above this are clamped (a few noisy rays off a bright object)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Paths
+# ---------------------------------------------------------------------------------------------------
+
+def image_path(run_dir: str | Path, scene: str, drop: int, frame: int) -> Path:
+    """``RUN/composite/<scene>/drop<NNNN>/f<frame:06d>.png`` (the path the export stage reads)."""
+    return Path(run_dir) / "composite" / scene / f"drop{drop:04d}" / f"f{frame:06d}.png"
+
+
+def depth_path(run_dir: str | Path, scene: str, drop: int, frame: int) -> Path:
+    """``RUN/composite/<scene>/drop<NNNN>/f<frame:06d>_depth.npz`` (key ``depth``, float32 metres)."""
+    return Path(run_dir) / "composite" / scene / f"drop{drop:04d}" / f"f{frame:06d}_depth.npz"
+
+
+# ---------------------------------------------------------------------------------------------------
+# Pure blends
+# ---------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Composite:
+    """What :func:`composite_full` returns."""
+
+    image: np.ndarray      # (H, W, 3) uint8 RGB
+    blur_sigma: float      # pixels, Gaussian blur applied to the object layer
+    photo_blur: float      # blur effect of the photo around the objects (0 sharp .. 1 blurred); NaN = not measured
+    photo_noise: float     # gray levels (0..255), sensor noise measured in the photo around the objects
+    noise_added: float     # gray levels, std of the noise added to fully covered object pixels
+
+
+def _check_image(name: str, a: np.ndarray, hw: tuple[int, int], channels: int | None) -> None:
+    want = hw if channels is None else (*hw, channels)
+    if a.shape != want:
+        raise ValueError(f"{name} has shape {a.shape}, expected {want}")
+
+
+def _clean_coverage(coverage: np.ndarray) -> np.ndarray:
+    c = np.nan_to_num(np.asarray(coverage, np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+    return np.clip(c, 0.0, 1.0)
+
+
+def _clean_radiance(pbr: np.ndarray) -> np.ndarray:
+    p = np.nan_to_num(np.asarray(pbr, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    return np.maximum(p, 0.0)
+
+
+def unpremultiply(pbr: np.ndarray, coverage: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """Object colour (not premultiplied) of every pixel.
+
+    ``pbr / coverage`` where the coverage is above a small epsilon; elsewhere the coverage-weighted mean
+    of the pixels within 2 pixels (normalised convolution), and ``fallback`` where none is covered.
+
+    Parameters
+    ----------
+    pbr : (H, W, 3) float32, linear radiance premultiplied by coverage
+    coverage : (H, W) float32 in [0, 1]
+    fallback : (H, W, 3) float32, linear colour used where no object sample is near
+
+    Returns
+    -------
+    (H, W, 3) float32 linear radiance
+    """
+    cov = _clean_coverage(coverage)
+    p = _clean_radiance(pbr)
+    k = 2 * _FILL_RADIUS + 1
+    num = cv2.boxFilter(p, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    den = cv2.boxFilter(cov, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)[..., None]
+    filled = np.where(den > _COVER_EPS, num / np.maximum(den, _COVER_EPS), fallback)
+    direct = p / np.maximum(cov, _COVER_EPS)[..., None]
+    return np.where(cov[..., None] > _COVER_EPS, direct, filled).astype(np.float32)
+
+
+def composite_published(photo: np.ndarray, pbr: np.ndarray, ao: np.ndarray, mask: np.ndarray, *,
+                        coverage: np.ndarray, gain: float = 1.0) -> np.ndarray:
+    """The published blend: PBR colour x AO inside the mask, the real pixel outside.
+
+    Parameters
+    ----------
+    photo : (H, W, 3) uint8 sRGB
+    pbr : (H, W, 3) float32 linear radiance premultiplied by ``coverage`` (the trace stage's pass)
+    ao : (H, W) float32 in [0, 1]
+    mask : (H, W) bool, the occlusion mask (raster labels > 0)
+    coverage : (H, W) float32 in [0, 1]
+    gain : float
+        Linear radiance -> photo linear units (``exposure / trace.radiance_scale``).
+
+    Returns
+    -------
+    (H, W, 3) uint8 sRGB
+    """
+    photo = np.asarray(photo, np.uint8)
+    hw = photo.shape[:2]
+    _check_image("photo", photo, hw, 3)
+    _check_image("pbr", np.asarray(pbr), hw, 3)
+    _check_image("ao", np.asarray(ao), hw, None)
+    _check_image("mask", np.asarray(mask), hw, None)
+    m = np.asarray(mask, bool)
+    out = photo.copy()
+    if not m.any():
+        return out
+    colour = unpremultiply(pbr, coverage, cl.decode_u8(photo) / max(gain, 1e-12))
+    a = np.clip(np.nan_to_num(np.asarray(ao, np.float32), nan=1.0), 0.0, 1.0)
+    obj = cl.encode_u8(colour * a[..., None] * np.float32(gain))
+    out[m] = obj[m]
+    return out
+
+
+def _bbox(mask: np.ndarray, margin: int) -> tuple[slice, slice] | None:
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    cols = np.flatnonzero(mask.any(axis=0))
+    h, w = mask.shape
+    return (slice(max(rows[0] - margin, 0), min(rows[-1] + margin + 1, h)),
+            slice(max(cols[0] - margin, 0), min(cols[-1] + margin + 1, w)))
+
+
+def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
+    if r <= 0:
+        return mask.copy()
+    return cv2.dilate(mask.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
+
+
+def composite_full(photo: np.ndarray, pbr: np.ndarray, coverage: np.ndarray, shadow_ratio: np.ndarray,
+                   labels: np.ndarray, *, rng: np.random.Generator, gain: float = 1.0, soft_edges: bool = True,
+                   shadows: bool = True, blur_sigma: float | None = None, noise_sigma: float | None = None,
+                   edge_band: int = 1) -> Composite:
+    """The full blend: soft edges, differential shadows and the photo's camera look.
+
+    Parameters
+    ----------
+    photo : (H, W, 3) uint8 sRGB
+    pbr : (H, W, 3) float32 linear radiance premultiplied by ``coverage``
+    coverage : (H, W) float32 in [0, 1], share of each pixel covered by a visible object
+    shadow_ratio : (H, W) float32, room light with objects / without (1 = unchanged)
+    labels : (H, W) uint16 visible instance labels (0 = none)
+    rng : the item's seeded generator (noise)
+    gain : float
+        Linear radiance -> photo linear units (``exposure / trace.radiance_scale``).
+    soft_edges : False = hard label mask instead of the coverage (ablation)
+    shadows : False = ignore the shadow ratio (ablation)
+    blur_sigma : float or None
+        Gaussian blur of the object layer, pixels; None = measured from the photo.
+    noise_sigma : float or None
+        Sensor noise of the photo, gray levels (0..255); None = measured; 0 = add none.
+    edge_band : int
+        Pixels around the label mask where coverage is trusted (``trace.edge_band``).
+
+    Returns
+    -------
+    Composite
+    """
+    photo = np.asarray(photo, np.uint8)
+    hw = photo.shape[:2]
+    _check_image("photo", photo, hw, 3)
+    _check_image("pbr", np.asarray(pbr), hw, 3)
+    _check_image("coverage", np.asarray(coverage), hw, None)
+    _check_image("shadow_ratio", np.asarray(shadow_ratio), hw, None)
+    _check_image("labels", np.asarray(labels), hw, None)
+    mask = np.asarray(labels) > 0
+    photo_lin = cl.decode_u8(photo)
+    g = np.float32(gain)
+
+    cov = _clean_coverage(coverage) * _dilate(mask, edge_band)
+    p = _clean_radiance(pbr) * (cov > 0)[..., None]
+    colour = unpremultiply(p, cov, photo_lin / max(g, 1e-12)) * g
+    if soft_edges:
+        # a labelled pixel the tracer found wholly uncovered (meshes of raster and trace differ a little):
+        # keep the mask's word for it so the image and the masks stay aligned
+        alpha = np.where(mask & (cov <= _COVER_EPS), np.float32(1.0), cov)
+    else:
+        alpha = mask.astype(np.float32)
+    alpha = np.where(alpha > _COVER_EPS, alpha, 0.0).astype(np.float32)
+    layer = colour * alpha[..., None]
+    if shadows:
+        sr = np.nan_to_num(np.asarray(shadow_ratio, np.float32), nan=1.0, posinf=1.0, neginf=1.0)
+        sr = np.clip(sr, 0.0, _SHADOW_RATIO_MAX)
+    else:
+        sr = np.ones(hw, np.float32)
+
+    def blend(sigma: float, sl: tuple[slice, slice] = (slice(None), slice(None))) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        lay, al, s = layer[sl], alpha[sl], sr[sl]
+        if sigma > 0:
+            lay, al = cl.gaussian_blur(lay, sigma), cl.gaussian_blur(al, sigma)
+            s = cl.gaussian_blur(s, sigma) if shadows else s
+        al = np.clip(al, 0.0, 1.0)
+        out = lay + (1.0 - al)[..., None] * photo_lin[sl] * s[..., None]
+        return out, al, s
+
+    objects = alpha > 0
+    box = _bbox(objects, _BLUR_CROP_MARGIN)
+    photo_blur = float("nan")
+    if blur_sigma is None:
+        if box is None:
+            blur_sigma = 0.0
+        else:
+            blur_sigma, photo_blur = cl.match_blur_sigma(
+                cv2.cvtColor(photo[box], cv2.COLOR_RGB2GRAY),
+                lambda s: cv2.cvtColor(cl.encode_u8(blend(s, box)[0]), cv2.COLOR_RGB2GRAY))
+    out_lin, al, s = blend(float(blur_sigma))
+    out = cl.linear_to_srgb(out_lin) * np.float32(255.0)
+
+    noise_added = 0.0
+    if noise_sigma is None:
+        if box is None:
+            noise_sigma = 0.0
+        else:
+            ring = _dilate(objects, _NOISE_BAND[1]) & ~_dilate(objects, _NOISE_BAND[0])
+            noise_sigma = cl.noise_sigma(photo, ring) if ring.sum() >= 256 else cl.noise_sigma(photo, ~objects)
+    if noise_sigma > 0 and objects.any():
+        inner = (al >= 0.99) & ~_dilate(~(al >= 0.99), 1)
+        render_sigma = cl.noise_sigma(np.clip(out, 0, 255), inner)
+        noise_added = cl.noise_to_add(float(noise_sigma), render_sigma)
+        if noise_added > 0:
+            n = rng.standard_normal(out.shape, dtype=np.float32) * np.float32(noise_added)
+            out = out + n * al[..., None]
+    image = np.clip(np.round(out), 0, 255).astype(np.uint8)
+    changed = (al > 0) | (s != 1.0)
+    image = np.where(changed[..., None], image, photo)
+    return Composite(image=image, blur_sigma=float(blur_sigma), photo_blur=photo_blur,
+                     photo_noise=float(noise_sigma), noise_added=float(noise_added))
+
+
+def composite_depth(labels: np.ndarray, object_depth: np.ndarray, real_depth: np.ndarray | None,
+                    room_depth: np.ndarray | None = None) -> np.ndarray:
+    """Depth of the composite: the objects' depth where visible, the real depth elsewhere.
+
+    Parameters
+    ----------
+    labels : (H, W) uint16 visible instance labels
+    object_depth : (H, W) float32 metres, nearest object depth
+    real_depth : (H, W) float32 metres, 0 = invalid; None = no sensor depth
+    room_depth : (H, W) float32 metres or None; when given it fills invalid real depth
+
+    Returns
+    -------
+    (H, W) float32 metres, 0 = invalid; never NaN.
+    """
+    from pipeline.annotate import compose_depth
+
+    bg = None if real_depth is None else np.nan_to_num(np.asarray(real_depth, np.float32), nan=0.0,
+                                                        posinf=0.0, neginf=0.0)
+    if room_depth is not None:
+        room = np.nan_to_num(np.asarray(room_depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+        bg = room if bg is None else np.where(bg > 0, bg, room)
+    d = np.nan_to_num(np.asarray(object_depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    return np.maximum(compose_depth(np.asarray(labels), d, bg), 0.0).astype(np.float32)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Stage
+# ---------------------------------------------------------------------------------------------------
+
+def plan(ctx: StageContext) -> list[Item]:
+    """One item per raster frame with status ok (the trace stage's items)."""
+    from pipeline.io import read_json
+
+    root = ctx.run_dir / "raster"
+    items = []
+    if not root.is_dir():
+        log.warning("composite: %s does not exist; run the raster and trace stages first", root)
+        return items
+    for js in sorted(root.glob("*/drop*/f*.json")):
+        if ".tmp-" in js.name or not js.with_suffix(".npz").is_file():
+            continue
+        try:
+            drop, frame = int(js.parent.name[4:]), int(js.stem[1:])
+        except ValueError:
+            continue
+        if read_json(js).get("status") != "ok":
+            continue
+        scene = js.parent.parent.name
+        items.append(Item(key=f"{scene}/{js.parent.name}/{js.stem}",
+                          data={"scene": scene, "drop": drop, "frame": frame}))
+    return items
+
+
+def run_item(ctx: StageContext, item: Item) -> dict:
+    from pipeline.ingest import load_scan, read_color, read_depth
+    from pipeline.io import atomic_save_npz, atomic_write_image, load_npz
+    from pipeline.raster import frame_stem, load_frame, resize_nearest, scene_depth_path
+    from pipeline.trace.stage import load_trace
+
+    cfg = ctx.cfg.composite
+    t0 = time.perf_counter()
+    scene, drop, frame = item.data["scene"], int(item.data["drop"]), int(item.data["frame"])
+    stem = frame_stem(ctx.run_dir, scene, drop, frame)
+    doc, arr = load_frame(stem)
+    if arr is None:
+        raise InputError(f"{stem}.json: frame status is {doc.get('status')!r}, not ok; re-run raster")
+    labels = arr["labels"]
+    h, w = labels.shape
+    tr = load_trace(ctx.run_dir, scene, drop, frame)
+    for key in ("pbr", "ao", "coverage", "shadow_ratio"):
+        if key not in tr:
+            raise InputError(f"trace output of {item.key} has no {key!r} pass; re-run 'scansynth trace'")
+        if tr[key].shape[:2] != (h, w):
+            raise InputError(f"trace pass {key!r} of {item.key} is {tr[key].shape[:2]}, the raster frame is "
+                             f"{(h, w)}; re-run trace after raster")
+    scan = load_scan(ctx.run_dir, scene)
+    photo = read_color(scan, frame)
+    if photo.shape[:2] != (h, w):
+        photo = cv2.resize(photo, (w, h), interpolation=cv2.INTER_AREA)
+    gain = cfg.exposure / ctx.cfg.trace.radiance_scale
+    if cfg.mode == "published":
+        image = composite_published(photo, tr["pbr"], tr["ao"], labels > 0, coverage=tr["coverage"], gain=gain)
+        info = {}
+    else:
+        res = composite_full(photo, tr["pbr"], tr["coverage"], tr["shadow_ratio"], labels, rng=ctx.rng(item),
+                             gain=gain, soft_edges=cfg.soft_edges, shadows=cfg.shadows,
+                             blur_sigma=None if cfg.blur_sigma < 0 else cfg.blur_sigma,
+                             noise_sigma=None if cfg.noise_sigma < 0 else cfg.noise_sigma,
+                             edge_band=ctx.cfg.trace.edge_band)
+        image = res.image
+        info = {"blur_sigma": res.blur_sigma, "photo_noise": round(res.photo_noise, 3),
+                "noise_added": round(res.noise_added, 3),
+                "photo_blur": None if np.isnan(res.photo_blur) else round(res.photo_blur, 4)}
+    real = resize_nearest(read_depth(scan, frame), w, h) if scan.depth_paths[frame] else None
+    room = None
+    sd = scene_depth_path(ctx.run_dir, scene, frame)
+    if (cfg.depth_fill == "room" or real is None) and sd.is_file():
+        room = load_npz(sd)["depth"]
+    depth = composite_depth(labels, arr["depth"], real, room)
+    atomic_write_image(image_path(ctx.run_dir, scene, drop, frame), image)
+    atomic_save_npz(depth_path(ctx.run_dir, scene, drop, frame), depth=depth)
+    return {"mode": cfg.mode, **info, "seconds": round(time.perf_counter() - t0, 3)}
+
+
+STAGE = Stage("composite", plan, run_item)

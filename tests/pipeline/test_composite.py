@@ -1,0 +1,359 @@
+"""Tests of pipeline/composite.py: the published and full blends, depth output, the stage.
+
+Frames are built here analytically: a disk object whose coverage is its exact pixel area share (by
+supersampling), a premultiplied radiance pass, and a textured photo.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline import camera_look as cl
+from pipeline.composite import composite_depth, composite_full, composite_published, unpremultiply
+
+H, W = 60, 80
+
+
+def _disk(cx: float, cy: float, r: float, h: int = H, w: int = W) -> tuple[np.ndarray, np.ndarray]:
+    """Coverage (4x4 supersampled area share) and labels (pixel centre inside) of a disk."""
+    s = (np.arange(4) + 0.5) / 4 - 0.5
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    cov = np.zeros((h, w))
+    for dy in s:
+        for dx in s:
+            cov += ((xx + dx - cx) ** 2 + (yy + dy - cy) ** 2 <= r * r)
+    cov /= 16.0
+    labels = ((xx - cx) ** 2 + (yy - cy) ** 2 <= r * r).astype(np.uint16)
+    return cov.astype(np.float32), labels
+
+
+def _photo(h: int = H, w: int = W, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w]
+    base = 110 + 50 * np.sin(xx / 5.0) * np.cos(yy / 7.0)
+    img = np.stack([base, base * 0.9, base * 0.8], axis=-1) + 2.0 * rng.standard_normal((h, w, 3))
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def _frame(cx=40.0, cy=30.0, r=12.0, colour=(0.5, 0.2, 0.1), h=H, w=W):
+    cov, labels = _disk(cx, cy, r, h, w)
+    pbr = np.asarray(colour, np.float32) * cov[..., None]
+    sr = np.ones((h, w), np.float32)
+    yy, xx = np.mgrid[0:h, 0:w]
+    ring = (labels == 0) & ((xx - cx) ** 2 + (yy - cy - 4) ** 2 <= (r + 5) ** 2)
+    sr[ring] = 0.6
+    return pbr, cov, labels, sr
+
+
+def _full(photo, pbr, cov, sr, labels, seed=0, **kw):
+    kw.setdefault("blur_sigma", 0.0)
+    kw.setdefault("noise_sigma", 0.0)
+    return composite_full(photo, pbr, cov, sr, labels, rng=np.random.default_rng(seed), **kw)
+
+
+# --------------------------------------------------------------------------------------------------
+# Published
+# --------------------------------------------------------------------------------------------------
+
+def test_published_is_pbr_times_ao_inside_the_mask_and_the_photo_outside():
+    photo = _photo()
+    pbr, cov, labels, _ = _frame()
+    ao = np.full((H, W), 0.8, np.float32)
+    out = composite_published(photo, pbr, ao, labels > 0, coverage=cov)
+    m = labels > 0
+    assert np.array_equal(out[~m], photo[~m])
+    want = cl.encode_u8(np.array([0.5, 0.2, 0.1], np.float32) * 0.8)
+    assert (out[m] == want).all()   # un-premultiplied: edge pixels are not darker than the interior
+
+
+def test_published_with_an_empty_mask_is_the_photo():
+    photo = _photo()
+    pbr, cov, labels, _ = _frame()
+    out = composite_published(photo, pbr, np.ones((H, W), np.float32), np.zeros((H, W), bool), coverage=cov)
+    assert np.array_equal(out, photo)
+
+
+# --------------------------------------------------------------------------------------------------
+# Full
+# --------------------------------------------------------------------------------------------------
+
+def test_full_changes_only_the_objects_their_edge_band_and_their_shadows():
+    photo = _photo()
+    pbr, cov, labels, sr = _frame()
+    res = _full(photo, pbr, cov, sr, labels)
+    changed = (res.image != photo).any(axis=-1)
+    from scipy.ndimage import binary_dilation
+
+    allowed = binary_dilation(labels > 0, np.ones((3, 3), bool)) | (sr != 1)
+    assert not (changed & ~allowed).any()
+    interior = (cov == 1)
+    assert (res.image[interior] == cl.encode_u8(np.array([0.5, 0.2, 0.1], np.float32))).all()
+
+
+def test_full_soft_edges_blend_by_coverage_in_linear_light():
+    photo = np.full((H, W, 3), 200, np.uint8)
+    pbr, cov, labels, _ = _frame(colour=(0.0, 0.0, 0.0))
+    res = _full(photo, pbr, cov, np.ones((H, W), np.float32), labels)
+    edge = (cov > 0.2) & (cov < 0.8)
+    assert edge.any()
+    want = cl.encode_u8(cl.decode_u8(photo)[edge] * (1 - cov[edge])[:, None])
+    assert np.abs(res.image[edge].astype(int) - want.astype(int)).max() <= 1
+    hard = _full(photo, pbr, cov, np.ones((H, W), np.float32), labels, soft_edges=False)
+    assert set(np.unique(hard.image[..., 0])) <= {0, 200}
+    assert np.array_equal(hard.image[..., 0] == 0, labels > 0)   # hard mask = the label mask
+
+
+def test_white_object_beside_a_white_wall_has_the_walls_pixel_value():
+    photo = np.full((H, W, 3), 230, np.uint8)
+    lin = float(cl.decode_u8(np.array([230], np.uint8))[0])
+    pbr, cov, labels, _ = _frame(colour=(lin, lin, lin))
+    res = _full(photo, pbr, cov, np.ones((H, W), np.float32), labels)
+    assert (res.image == 230).all()
+    # radiance_scale 2 in the tracer: the gain 1/2 brings it back
+    res2 = _full(photo, pbr * 2, cov, np.ones((H, W), np.float32), labels, gain=0.5)
+    assert (res2.image == 230).all()
+
+
+def test_shadows_darken_the_room_by_the_ratio_in_linear_light():
+    photo = _photo()
+    pbr, cov, labels, sr = _frame()
+    res = _full(photo, pbr, cov, sr, labels)
+    ring = (sr < 1) & (cov == 0)
+    want = cl.encode_u8(cl.decode_u8(photo)[ring] * 0.6)
+    assert np.abs(res.image[ring].astype(int) - want.astype(int)).max() <= 1
+    off = _full(photo, pbr, cov, sr, labels, shadows=False)
+    assert np.array_equal(off.image[ring], photo[ring])
+
+
+def test_measured_blur_and_noise_follow_the_photo():
+    rng = np.random.default_rng(3)
+    sharp = np.kron(rng.random((8, 10)) * 180 + 40, np.ones((8, 8)))[:H, :W]
+    lin = cl.srgb_to_linear(sharp.astype(np.uint8)[..., None].repeat(3, -1))   # a sharp blocky room
+    _, cov, labels, _ = _frame(r=14.0)
+    pbr = lin[::-1, ::-1] * 0.5 * cov[..., None]   # a textured object, as sharp as the tracer makes it
+    sr = np.ones((H, W), np.float32)
+    photo = cl.encode_u8(cl.gaussian_blur(lin, 1.5))
+    noisy = np.clip(np.round(photo + 4.0 * rng.standard_normal(photo.shape)), 0, 255).astype(np.uint8)
+    res = composite_full(noisy, pbr, cov, sr, labels, rng=np.random.default_rng(0))
+    assert 0.8 <= res.blur_sigma <= 2.5
+    assert res.photo_noise == pytest.approx(4.0, rel=0.3)
+    assert res.noise_added > 2.0
+    sharp_res = composite_full(cl.encode_u8(lin), pbr, cov, sr, labels, rng=np.random.default_rng(0))
+    assert sharp_res.blur_sigma <= 0.6 and sharp_res.noise_added < 1.5
+
+
+def test_full_is_deterministic_per_seed_and_the_seed_moves_only_object_pixels():
+    photo = _photo()
+    pbr, cov, labels, sr = _frame()
+    a = _full(photo, pbr, cov, sr, labels, seed=5, noise_sigma=3.0)
+    b = _full(photo, pbr, cov, sr, labels, seed=5, noise_sigma=3.0)
+    c = _full(photo, pbr, cov, sr, labels, seed=6, noise_sigma=3.0)
+    assert np.array_equal(a.image, b.image)
+    diff = (a.image != c.image).any(axis=-1)
+    assert diff.any() and not (diff & (cov == 0)).any()
+
+
+# --------------------------------------------------------------------------------------------------
+# Stability
+# --------------------------------------------------------------------------------------------------
+
+def _sane(res_img, photo):
+    assert res_img.dtype == np.uint8 and res_img.shape == photo.shape
+
+
+@pytest.mark.parametrize("mode", ["published", "full"])
+def test_object_at_the_image_border(mode):
+    photo = _photo()
+    pbr, cov, labels, sr = _frame(cx=2.0, cy=57.0, r=10.0)
+    if mode == "published":
+        out = composite_published(photo, pbr, np.ones((H, W), np.float32), labels > 0, coverage=cov)
+    else:
+        out = composite_full(photo, pbr, cov, sr, labels, rng=np.random.default_rng(0)).image
+    _sane(out, photo)
+    assert (out[labels > 0] != photo[labels > 0]).any()
+
+
+def test_fully_occluded_object_leaves_the_photo_and_masks_alone():
+    photo = _photo()
+    z = np.zeros((H, W), np.float32)
+    res = composite_full(photo, np.zeros((H, W, 3), np.float32), z, np.ones((H, W), np.float32),
+                         np.zeros((H, W), np.uint16), rng=np.random.default_rng(0))
+    assert np.array_equal(res.image, photo) and res.noise_added == 0.0
+    # the tracer covered pixels the raster hid (real-depth occlusion): they stay hidden
+    pbr, cov, _, _ = _frame()
+    res2 = composite_full(photo, pbr, cov, np.ones((H, W), np.float32), np.zeros((H, W), np.uint16),
+                          rng=np.random.default_rng(0))
+    assert np.array_equal(res2.image, photo)
+
+
+def test_object_filling_the_frame():
+    photo = _photo()
+    cov = np.ones((H, W), np.float32)
+    pbr = np.full((H, W, 3), 0.3, np.float32)
+    res = composite_full(photo, pbr, cov, np.ones((H, W), np.float32), np.ones((H, W), np.uint16),
+                         rng=np.random.default_rng(0))
+    assert np.isfinite(res.photo_noise) and res.photo_noise >= 0
+    assert (res.image == cl.encode_u8(np.float32(0.3))).mean() > 0.5
+
+
+@pytest.mark.parametrize("level", [0, 3, 252, 255])
+def test_very_dark_and_saturated_photos(level):
+    photo = np.full((H, W, 3), level, np.uint8)
+    pbr, cov, labels, sr = _frame()
+    res = composite_full(photo, pbr, cov, sr, labels, rng=np.random.default_rng(0))
+    _sane(res.image, photo)
+    obj = cl.encode_u8(np.array([0.5, 0.2, 0.1], np.float32))
+    assert np.abs(res.image[cov == 1].astype(int) - obj.astype(int)).max() <= 3
+    if level >= 252:
+        assert (res.image[sr < 1] < level).all()   # a shadow shows on a clipped white wall too
+
+
+def test_nan_and_inf_in_the_passes_do_not_reach_the_image():
+    photo = _photo()
+    pbr, cov, labels, sr = _frame()
+    pbr[30, 40] = np.nan
+    pbr[31, 40] = np.inf
+    cov = cov.copy()
+    cov[29, 40] = np.nan
+    sr = sr.copy()
+    sr[5, 5] = np.nan
+    sr[6, 6] = -np.inf
+    res = composite_full(photo, pbr, cov, sr, labels, rng=np.random.default_rng(0))
+    out = composite_published(photo, pbr, np.full((H, W), np.nan, np.float32), labels > 0, coverage=cov)
+    _sane(res.image, photo)
+    _sane(out, photo)
+
+
+def test_shape_mismatch_is_an_error_naming_the_pass():
+    photo = _photo()
+    pbr, cov, labels, sr = _frame()
+    with pytest.raises(ValueError, match="shadow_ratio"):
+        composite_full(photo, pbr, cov, sr[:-1], labels, rng=np.random.default_rng(0))
+
+
+def test_unpremultiply_fills_uncovered_mask_pixels_from_neighbours():
+    pbr, cov, labels, _ = _frame()
+    cov2 = cov.copy()
+    cov2[30, 40] = 0.0
+    pbr2 = pbr.copy()
+    pbr2[30, 40] = 0.0
+    col = unpremultiply(pbr2, cov2, np.zeros((H, W, 3), np.float32))
+    assert np.allclose(col[30, 40], [0.5, 0.2, 0.1], atol=1e-5)
+    assert np.allclose(col[0, 0], 0.0)
+
+
+# --------------------------------------------------------------------------------------------------
+# Depth
+# --------------------------------------------------------------------------------------------------
+
+def test_depth_is_real_depth_with_visible_object_depth_even_when_real_depth_is_mostly_invalid():
+    _, _, labels, _ = _frame()
+    obj = np.where(labels > 0, 1.25, 0.0).astype(np.float32)
+    real = np.zeros((H, W), np.float32)
+    real[:5] = 2.0
+    real[6, 6] = np.nan
+    d = composite_depth(labels, obj, real)
+    assert np.isfinite(d).all() and d.dtype == np.float32
+    assert (d[labels > 0] == 1.25).all() and (d[:5][labels[:5] == 0] == 2.0).all()
+    assert (d[10:][labels[10:] == 0] == 0).all()
+    room = np.full((H, W), 3.0, np.float32)
+    filled = composite_depth(labels, obj, real, room)
+    assert (filled[10:][labels[10:] == 0] == 3.0).all() and (filled[:5][labels[:5] == 0] == 2.0).all()
+    assert (composite_depth(labels, obj, None)[labels == 0] == 0).all()
+
+
+# --------------------------------------------------------------------------------------------------
+# Stage
+# --------------------------------------------------------------------------------------------------
+
+def _make_run(run: Path, *, with_trace: bool = True) -> None:
+    """Ingested scan (one frame, photo on disk, no depth), one raster frame and its trace passes."""
+    from pipeline import annotate
+    from pipeline.ingest import save_scan
+    from pipeline.io import atomic_save_npz, atomic_write_image, atomic_write_json
+    from pipeline.types import Scan
+
+    scene_dir = run / "ingest" / "room"
+    photo = _photo(2 * H, 2 * W)   # the photo is at twice the raster resolution (raster.image_scale 0.5)
+    atomic_write_image(scene_dir / "color0.png", photo)
+    K = np.array([[60.0, 0, 39.5], [0, 60.0, 29.5], [0, 0, 1]])
+    scan = Scan(name="room", root=str(scene_dir), format="7scenes", frame_ids=np.arange(1),
+                color_paths=(str(scene_dir / "color0.png"),), depth_paths=("",), width=2 * W, height=2 * H,
+                K=K[None], T_c2w=np.eye(4)[None], depth_width=2 * W, depth_height=2 * H, depth_K=K[None],
+                depth_scale=0.001, depth_registered=True, up_w=np.array([0, 0, 1.0]),
+                mesh_path=str(scene_dir / "room.ply"))
+    save_scan(scene_dir, scan)
+    pbr, cov, labels, sr = _frame()
+    stem = run / "raster" / "room" / "drop0000" / "f000000"
+    atomic_save_npz(stem.with_suffix(".npz"), labels=labels, depth=np.where(labels > 0, 1.5, 0).astype(np.float32),
+                    amodal=annotate.pack_masks((labels > 0)[None]))
+    atomic_write_json(stem.with_suffix(".json"), {"status": "ok", "scene": "room", "drop": 0, "frame": 0,
+                                                  "width": W, "height": H, "K": K.tolist(),
+                                                  "T_c2w": np.eye(4).tolist(), "instances": []})
+    atomic_write_json(stem.parent / "f000001.json", {"status": "rejected", "reason": "too small"})
+    if with_trace:
+        atomic_save_npz(run / "trace/room/drop0000/f000000.npz", pbr=pbr, ao=np.ones((H, W), np.float32),
+                        coverage=cov, shadow_ratio=sr)
+
+
+def _ctx(run: Path, **composite):
+    from pipeline.config import build_config
+    from pipeline.runner import StageContext
+
+    return StageContext(run_dir=run, cfg=build_config({"composite": composite}), stage="composite")
+
+
+@pytest.mark.parametrize("mode", ["published", "full"])
+def test_stage_writes_where_export_reads_deterministically(tmp_path, mode):
+    from pipeline.composite import STAGE, depth_path
+    from pipeline.export import composite_path
+    from pipeline.io import load_npz
+
+    run = tmp_path / "run"
+    _make_run(run)
+    ctx = _ctx(run, mode=mode)
+    items = STAGE.plan(ctx)
+    assert [it.key for it in items] == ["room/drop0000/f000000"]
+    before = (run / "raster/room/drop0000/f000000.json").read_bytes()
+    res = STAGE.run_item(ctx, items[0])
+    assert res["mode"] == mode
+    png = composite_path(run, "room", 0, 0)
+    import cv2
+
+    img = cv2.imread(str(png), cv2.IMREAD_COLOR)
+    assert img.shape == (H, W, 3)
+    d = load_npz(depth_path(run, "room", 0, 0))["depth"]
+    _, _, labels, _ = _frame()
+    assert d.shape == (H, W) and (d[labels > 0] == 1.5).all() and (d[labels == 0] == 0).all()
+    first = png.read_bytes()
+    STAGE.run_item(ctx, items[0])
+    assert png.read_bytes() == first
+    assert (run / "raster/room/drop0000/f000000.json").read_bytes() == before   # annotations untouched
+
+
+def test_stage_without_trace_output_names_the_fix(tmp_path):
+    from pipeline.composite import STAGE
+    from pipeline.errors import InputError
+
+    run = tmp_path / "run"
+    _make_run(run, with_trace=False)
+    ctx = _ctx(run)
+    with pytest.raises(InputError, match="trace"):
+        STAGE.run_item(ctx, STAGE.plan(ctx)[0])
+
+
+def test_stage_plans_nothing_without_raster(tmp_path):
+    from pipeline.composite import STAGE
+
+    assert STAGE.plan(_ctx(tmp_path)) == []
+
+
+def test_config_rejects_unknown_mode():
+    from pipeline.config import build_config
+    from pipeline.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="mode"):
+        build_config({"composite": {"mode": "magic"}})
