@@ -218,17 +218,6 @@ class CompositeConfig:
                              min_exclusive=True)
     depth_fill: str = option("none", "depth output where the real depth is invalid: none = keep 0, room = the "
                              "room mesh's rendered depth", choices=("none", "room"))
-    soft_edges: bool = option(True, "full mode: anti-aliased edges from the traced coverage (false = hard label mask)")
-    shadows: bool = option(True, "full mode: darken the room by the traced shadow ratio (differential rendering)")
-    blur_sigma: float = option(-1.0, "full mode: Gaussian blur of the objects, pixels; negative = match the "
-                               "photo's measured blur level")
-    noise_sigma: float = option(-1.0, "full mode: sensor noise added to the objects, gray levels (0..255); "
-                                "negative = measured from the photo; 0 = none")
-    exposure: float = option(1.0, "photo exposure relative to the scan's room colours (rendered radiance x "
-                             "this / trace.radiance_scale is encoded with the sRGB curve)", min=0.0,
-                             min_exclusive=True)
-    depth_fill: str = option("none", "depth output where the real depth is invalid: none = keep 0, room = the "
-                             "room mesh's rendered depth", choices=("none", "room"))
 
 
 @dataclass(frozen=True)
