@@ -7,6 +7,14 @@ Stages import these instead of writing numbers inline, so a tolerance is changed
 # 7-Scenes/ScanNet pose files reaches ~1e-5; a real scaling or shear is far larger).
 POSE_ORTHONORMAL_TOL = 1e-3
 
+# Physics (issue 7): a box resting on a plane sits at its half extent within this (metres); soft
+# MuJoCo-style contacts sink ~0.3 mm under their own weight at the default solimp/solref.
+PHYS_REST_HEIGHT_TOL = 1e-3
+
+# Physics vs MuJoCo rest poses (issue 7): position (m) and orientation (degrees) agreement required.
+PHYS_MUJOCO_POS_TOL = 2e-3
+PHYS_MUJOCO_ANGLE_TOL_DEG = 2.0
+
 # Raster passes against an independent ray caster on the same posed meshes (issue 8): both sample the
 # exact pixel centres, so only pixels whose centre lies within float rounding of an edge may differ.
 RASTER_MASK_IOU_MIN = 0.995

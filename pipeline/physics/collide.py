@@ -109,11 +109,41 @@ def speculative_margin(model: Model, state: State) -> np.ndarray:
     return np.where(state.asleep, 0.0, sp) + model.opt.margin
 
 
-def _keep_smallest(d: np.ndarray, k: int) -> np.ndarray:
-    """Indices (along the last axis) of the ``k`` smallest entries of ``d`` (..., V), unsorted."""
-    if d.shape[-1] <= k:
-        return np.broadcast_to(np.arange(d.shape[-1]), d.shape).copy()
-    return np.argpartition(d, k - 1, axis=-1)[..., :k]
+def _select(d: np.ndarray, pts: np.ndarray, k: int, patch: float) -> np.ndarray:
+    """Contact reduction: indices (G, k) into the last axis of ``d`` (G, V) of a spread-out support set.
+
+    The deepest point first, then repeatedly the candidate farthest from those chosen, among points
+    within ``patch`` of the deepest depth (the touching patch: a face resting on a plane keeps its
+    corners, not an arbitrary cluster). Unused slots repeat the deepest point (the caller dedups by
+    requiring distinct indices). Rows whose entries are all ``inf`` give index 0.
+    """
+    G, V = d.shape
+    first = np.argmin(d, axis=1)
+    dmin = d[np.arange(G), first]
+    cand = d <= (dmin + patch)[:, None]
+    chosen = [first]
+    mind = np.linalg.norm(pts - pts[np.arange(G), first][:, None, :], axis=2)
+    for _ in range(min(k, V) - 1):
+        score = np.where(cand, mind, -1.0)
+        nxt = np.argmax(score, axis=1)
+        ok = score[np.arange(G), nxt] > 1e-9
+        nxt = np.where(ok, nxt, first)
+        chosen.append(nxt)
+        mind = np.minimum(mind, np.linalg.norm(pts - pts[np.arange(G), nxt][:, None, :], axis=2))
+    idx = np.stack(chosen, axis=1)
+    # mark repeats of the first index as unused by pointing them at an inf slot when there is one
+    return idx
+
+
+def _pick(d: np.ndarray, pts: np.ndarray, k: int, patch: float, reach: np.ndarray
+          ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Selected (row, column) pairs and their depths: ``(rows, cols, dist)`` for entries < reach."""
+    idx = _select(d, pts, k, patch)
+    dk = np.take_along_axis(d, idx, 1)
+    ok = dk < reach
+    ok[:, 1:] &= idx[:, 1:] != idx[:, :1]
+    rows, slot = np.nonzero(ok)
+    return rows, idx[rows, slot], dk[rows, slot]
 
 
 def collide(model: Model, state: State) -> Contacts:
@@ -125,6 +155,7 @@ def collide(model: Model, state: State) -> Contacts:
     if B == 0:
         return empty_contacts()
     k = model.opt.contacts_per_pair
+    patch = model.opt.margin
     R = quat_to_mat(state.quat)
     Wv = world_vertices(model, R, state.pos)                        # (B, V, 3)
     V = Wv.shape[1]
@@ -151,29 +182,20 @@ def collide(model: Model, state: State) -> Contacts:
             n = model.plane[p, :3]
             d = Wv[aw] @ n - model.plane[p, 3] - rad[aw, None]            # (A, V)
             d = np.where(vmask[aw], d, np.inf)
-            idx = _keep_smallest(d, k)
-            dk = np.take_along_axis(d, idx, 1)
-            sel = dk < spec[aw, None]
-            bi, ki = np.nonzero(sel)
-            vi = idx[bi, ki]
+            bi, vi, dk = _pick(d, Wv[aw], k, patch, spec[aw, None])
             body = aw[bi]
             pts = Wv[body, vi] - n * rad[body, None]
-            emit(body, np.full(len(body), -1), pts, np.broadcast_to(n, pts.shape).copy(),
-                 dk[bi, ki], B + p, vi)
+            emit(body, np.full(len(body), -1), pts, np.broadcast_to(n, pts.shape).copy(), dk, B + p, vi)
         # --- room distance field -------------------------------------------------------------------
         if model.has_room:
             udf, grad = room_distance(model, Wv[aw])
             d = udf - model.room_thickness - rad[aw, None]
             d = np.where(vmask[aw], d, np.inf)
-            idx = _keep_smallest(d, k)
-            dk = np.take_along_axis(d, idx, 1)
-            sel = dk < spec[aw, None]
-            bi, ki = np.nonzero(sel)
-            vi = idx[bi, ki]
+            bi, vi, dk = _pick(d, Wv[aw], k, patch, spec[aw, None])
             body = aw[bi]
             nrm = grad[bi, vi]
             pts = Wv[body, vi] - nrm * rad[body, None]
-            emit(body, np.full(len(body), -1), pts, nrm, dk[bi, ki], B + P, vi)
+            emit(body, np.full(len(body), -1), pts, nrm, dk, B + P, vi)
     # --- body pairs ------------------------------------------------------------------------------
     if B > 1:
         I, J = np.triu_indices(B)
@@ -210,8 +232,7 @@ def collide(model: Model, state: State) -> Contacts:
                 a, b, f, d = A_[s], B_[s], f[s], d[s]
                 n = nW[s, f] if len(a) else np.zeros((0, 3))
                 emit(a, b, state.pos[a] - n * rad[a, None], n, d, b, np.zeros(len(a), np.int64))
-            # polyhedron pairs: separating face axis of either body (SAT on face normals), then the
-            # vertices of each body near the other one become contacts along that axis
+            # polyhedron pairs: vertices of each body against the face planes of the other
             pp = (model.body_kind[I] != KIND_SPHERE) & (model.body_kind[J] != KIND_SPHERE)
             A_, B_ = I[pp], J[pp]
             if len(A_):
@@ -227,6 +248,9 @@ def collide(model: Model, state: State) -> Contacts:
                 sepB = np.where(mA[:, :, None], sdAB, np.inf).min(axis=1)              # (Q, F)
                 sepA = np.where(mB[:, :, None], sdBA, np.inf).min(axis=1)
                 fB, fA = np.argmax(sepB, axis=1), np.argmax(sepA, axis=1)
+                # the pair's axis is the face normal of either body that separates them best (SAT
+                # on face axes); points of each body that lie over the other body (their distance to
+                # it, ignoring faces facing along the axis, is small) become contacts along that axis
                 useB = sepB[qa, fB] >= sepA[qa, fA] - 1e-6
                 n = np.where(useB[:, None], nWB[qa, fB], -nWA[qa, fA])               # (Q, 3) B -> A
                 projA = np.einsum("pvi,pi->pv", Wv[A_], n)
@@ -234,15 +258,15 @@ def collide(model: Model, state: State) -> Contacts:
                 hA = np.where(mA, projA, np.inf).min(axis=1)
                 hB = np.where(mB, projB, -np.inf).max(axis=1)
                 reach = (spec[A_] + spec[B_])[:, None]
-                for side, (proj, near, mask, owner) in enumerate((
-                        (projA - hB[:, None], sdAB.max(axis=2), mA, A_),
-                        (hA[:, None] - projB, sdBA.max(axis=2), mB, B_))):
-                    d = np.where(mask & (near < reach), proj, np.inf)
-                    idx = _keep_smallest(d, k)
-                    dk = np.take_along_axis(d, idx, 1)
-                    qi, ki = np.nonzero(dk < reach)
-                    vi = idx[qi, ki]
-                    emit(A_[qi], B_[qi], Wv[owner[qi], vi], n[qi], dk[qi, ki], B_[qi], vi + side * V)
+                lateral = model.opt.margin
+                for side, (proj, sd, nW, sgn, mask, owner) in enumerate((
+                        (projA - hB[:, None], sdAB, nWB, 1.0, mA, A_),
+                        (hA[:, None] - projB, sdBA, nWA, -1.0, mB, B_))):
+                    side_face = (sgn * np.einsum("pfi,pi->pf", nW, n)) < 0.7            # (Q, F)
+                    over = np.where(side_face[:, None, :], sd, -np.inf).max(axis=2)    # (Q, V)
+                    d = np.where(mask & (over < lateral), proj, np.inf)
+                    qi, vi, dk = _pick(d, Wv[owner], k, patch, reach)
+                    emit(A_[qi], B_[qi], Wv[owner[qi], vi], n[qi], dk, B_[qi], vi + side * V)
     if not out["a"]:
         return empty_contacts()
     a = np.concatenate(out["a"])

@@ -152,7 +152,7 @@ def solve_contacts(model: Model, state: State, contacts: Contacts, vel_free: np.
     soft = r <= 0
     target = np.empty((K, 3))
     target[:, 0] = np.where(soft, u[:, 0] + dt * (-bb * u[:, 0] - kk * dimp * r), -r / dt)
-    target[:, 1:] = u[:, 1:] * (1 - bb * dt)
+    target[:, 1:] = u[:, 1:] * max(0.0, 1 - bb * dt)   # never reverse the slip (energy)
     Rrow = np.stack([np.where(soft, Rn, 1e-9 * Ann), Rn / opt.impratio, Rn / opt.impratio], axis=1)
     H = A + np.diag(Rrow.reshape(-1))
     c = (target - uf).reshape(-1)
@@ -194,3 +194,35 @@ def solve_contacts(model: Model, state: State, contacts: Contacts, vel_free: np.
     angvel[bodies] += dv[:, 3:]
     imp[ci] = p.reshape(K, 3)
     return SolveResult(vel, angvel, imp, it, res)
+
+
+def rolling_resistance(model: Model, state: State, contacts: Contacts, impulse: np.ndarray,
+                       angvel: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
+    """Rolling and torsional resistance: each body's angular momentum shrinks by up to
+    ``Options.rolling`` (m) times the normal impulse it received this step (N s).
+
+    Point contacts cannot stop a ball rolling or a body spinning about its contact normal; real
+    contacts have a patch that does. This is a simple isotropic stand-in for MuJoCo's condim 6 rolling
+    and torsional friction. Returns the new (B, 3) angular velocities.
+    """
+    mu_r = model.opt.rolling
+    if mu_r <= 0 or contacts.count == 0:
+        return angvel
+    B = model.nbody
+    pn = impulse[:, 0]
+    N = np.bincount(contacts.body_a, pn, minlength=B)
+    ob = contacts.body_b >= 0
+    N += np.bincount(contacts.body_b[ob], pn[ob], minlength=B)
+    act = np.flatnonzero(dynamic & (N > 0))
+    if not len(act):
+        return angvel
+    R = quat_to_mat(state.quat[act])
+    from pipeline.physics.integrate import inertia_world
+
+    L = np.einsum("bij,bj->bi", inertia_world(R, model.body_inertia[act]), angvel[act])
+    Lm = np.linalg.norm(L, axis=1)
+    cut = np.minimum(mu_r * N[act], Lm)
+    L_new = L * (1 - cut / np.maximum(Lm, 1e-300))[:, None]
+    out = angvel.copy()
+    out[act] = np.einsum("bij,bj->bi", inertia_world_inv(R, model.body_inertia[act]), L_new)
+    return out

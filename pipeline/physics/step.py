@@ -1,6 +1,7 @@
 """``step(model, state) -> State``: one time step made of named sub-steps.
 
-``wake`` -> external forces -> ``collide`` -> ``solve_contacts`` -> ``integrate`` -> ``ccd.advance``
+``wake`` -> external forces -> ``collide`` -> ``rolling_resistance`` -> ``solve_contacts`` ->
+``integrate`` -> ``ccd.advance``
 -> ``update_sleep``. No validation here: :func:`~pipeline.physics.types.build_model` did it once.
 """
 
@@ -12,7 +13,7 @@ from pipeline.physics.ccd import advance
 from pipeline.physics.collide import Contacts, collide
 from pipeline.physics.integrate import integrate
 from pipeline.physics.sleep import update_sleep, wake
-from pipeline.physics.solve import solve_contacts
+from pipeline.physics.solve import rolling_resistance, solve_contacts
 from pipeline.physics.types import Model, State
 
 
@@ -44,6 +45,8 @@ def step(model: Model, state: State) -> State:
     vel_free, angvel_free = external(model, state, active)
     contacts = collide(model, state)
     warm = warm_start(state, contacts)
+    # rolling resistance from last step's normal impulses, before the solve so contacts stay consistent
+    angvel_free = rolling_resistance(model, state, contacts, warm, angvel_free, active)
     sol = solve_contacts(model, state, contacts, vel_free, angvel_free, active, warm)
     pos, quat, angvel = integrate(model, state, sol.vel, sol.angvel, active)
     pos, quat, vel, angvel, _ = advance(model, state.pos, state.quat, pos, quat, sol.vel, angvel, active)

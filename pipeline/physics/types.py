@@ -33,8 +33,10 @@ class Options:
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)  # m/s^2, world frame
     friction: float = 0.5            # Coulomb coefficient used when a body gives none
     solref: tuple[float, float] = (0.04, 1.0)   # (time constant s, damping ratio); tc >= 2 dt enforced
-    solimp: tuple[float, float, float] = (0.98, 0.99, 0.001)  # (dmin, dmax, width m) impedance
+    solimp: tuple[float, float, float] = (0.99, 0.99, 0.001)  # (dmin, dmax, width m); dmin = dmax
+    # keeps impacts inelastic without a rebound through the surface (b dt and R cancel exactly)
     impratio: float = 10.0           # friction rows are impratio x harder than normal rows
+    rolling: float = 0.002           # m, rolling/torsional resistance length (0 = off)
     iterations: int = 60             # solver iterations per step (upper bound)
     tolerance: float = 1e-7          # solver stops when the impulse change is below this (N s)
     margin: float = 0.005            # contact detection distance beyond speculative margins, m
@@ -117,7 +119,8 @@ class Body:
 # Geometry helpers
 # ---------------------------------------------------------------------------------------------------
 
-def hull_planes(points: np.ndarray, *, max_vertices: int = 48) -> tuple[np.ndarray, np.ndarray]:
+def hull_planes(points: np.ndarray, *, max_vertices: int = 48, max_points: int = 64,
+                edge_spacing: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
     """Convex hull of ``points`` reduced to at most ``max_vertices`` extreme vertices.
 
     Parameters
@@ -126,10 +129,14 @@ def hull_planes(points: np.ndarray, *, max_vertices: int = 48) -> tuple[np.ndarr
         (N, 3) float64, m.
     max_vertices
         Largest number of hull vertices kept (farthest-point subset of the hull's vertices).
+    max_points
+        Largest number of contact points (hull vertices first, then points along the edges).
+    edge_spacing
+        Spacing of the edge points, m (raised when ``max_points`` would be exceeded).
 
     Returns
     -------
-    verts : (V, 3) float64 hull vertices
+    verts : (V, 3) float64 hull vertices followed by edge points (contact points)
     planes : (F, 4) float64 outward unit normals and offsets (n.x <= d inside), coplanar faces merged
     """
     from scipy.spatial import ConvexHull
@@ -150,6 +157,21 @@ def hull_planes(points: np.ndarray, *, max_vertices: int = 48) -> tuple[np.ndarr
         verts = verts[hull.vertices]
         hull = ConvexHull(verts)
     eq = hull.equations  # (F, 4): n.x + c <= 0 inside
+    # points along the hull's edges (and triangle diagonals): contacts where edges cross faces
+    # (two boxes turned against each other touch where their edges cross, not at vertices)
+    e = np.sort(np.concatenate([hull.simplices[:, [0, 1]], hull.simplices[:, [1, 2]],
+                                hull.simplices[:, [2, 0]]]), axis=1)
+    e = np.unique(e, axis=0)
+    p0, p1 = hull.points[e[:, 0]], hull.points[e[:, 1]]
+    length = np.linalg.norm(p1 - p0, axis=1)
+    bound = float(np.linalg.norm(verts - verts.mean(0), axis=1).max())
+    spacing = max(edge_spacing, bound / 3, float(length.sum()) / max(max_points - len(verts), 1))
+    extra = [verts]
+    for k in range(1, int(np.ceil(length.max() / spacing)) if len(length) else 1):
+        cnt = np.ceil(length / spacing)
+        sel = k < cnt
+        extra.append(p0[sel] + (p1[sel] - p0[sel]) * (k / cnt[sel])[:, None])
+    verts = np.concatenate(extra)[:max_points]
     planes = np.concatenate([eq[:, :3], -eq[:, 3:4]], axis=1)
     # merge coplanar triangles (same plane up to rounding)
     keyed = np.round(planes / np.array([1e-6, 1e-6, 1e-6, 1e-7]))

@@ -1,0 +1,202 @@
+"""A drop: N objects spawned above a room, simulated until they all sleep or the time limit.
+
+The spawn box follows the published recipe: in a gravity-aligned frame of the room's bounds it covers
+most of the horizontal extent (``spawn_xy`` of it, centred) and a slab slightly above the vertical
+centre (``spawn_z`` as fractions of the height). Poses are sampled without overlap (bounding spheres
+apart from each other and from the room surface); orientations are uniform; with probability
+``p_velocity`` a body also gets a random initial velocity and spin (without it, objects land in the same
+spots every time). The verdict is ``accepted`` or ``rejected:<reason>`` with reasons ``left-room`` (a
+body fell out of the room's grid, e.g. through a hole in the scan), ``never-settled`` (not all asleep at
+``max_time``), ``penetration`` (deeper than ``max_penetration``) and ``spawn`` (no free spawn pose).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.physics.step import penetration, step
+from pipeline.physics.types import Body, Model, Options, State, build_model, make_state, model_poses
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DropSettings:
+    """Plain values controlling one drop."""
+
+    timestep: float = 0.02                 # s (published default)
+    max_time: float = 40.0                 # s (published default)
+    spawn_xy: float = 0.8                  # share of the room's horizontal extent covered, centred
+    spawn_z: tuple[float, float] = (0.5, 0.65)  # spawn slab, fractions of the room height from its floor
+    p_velocity: float = 0.0                # probability that a body gets a random initial velocity/spin
+    max_speed: float = 1.0                 # m/s, largest random initial speed
+    max_spin: float = 6.0                  # rad/s, largest random initial spin
+    max_penetration: float = 0.01          # m, deeper final penetration rejects the drop
+    room_thickness: float = 0.01           # m, half-thickness of the scan surface shell
+    friction: float = 0.5                  # Coulomb coefficient
+    spawn_tries: int = 200                 # samples per body before giving up
+
+
+@dataclass(frozen=True)
+class DropResult:
+    """Outcome of one drop."""
+
+    R_m2w: np.ndarray         # (N, 3, 3) float64 final model-to-world rotations
+    t_m2w: np.ndarray         # (N, 3) float64, m, final model-to-world translations
+    at_rest: np.ndarray       # (N,) bool, asleep at the end
+    max_penetration: float    # m, deepest contact penetration at the end
+    verdict: str              # "accepted" | "rejected:<reason>"
+    sim_time: float           # s simulated
+    steps: int
+
+
+def gravity_frame(up: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation world -> gravity frame whose z axis is ``up``."""
+    u = np.asarray(up, float) / np.linalg.norm(up)
+    a = np.array([1.0, 0, 0]) if abs(u[0]) < 0.9 else np.array([0, 1.0, 0])
+    x = np.cross(a, u)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(u, x), u])
+
+
+def room_bounds(room: dict, R_w2g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds (lo, hi) (3,) of the room surface in the gravity frame (from grid nodes near the surface)."""
+    udf = np.asarray(room["udf"])
+    sp = float(room["spacing"])
+    ijk = np.argwhere(udf < 0.75 * sp)
+    if len(ijk) == 0:
+        raise ValueError("room proxy has no surface (udf never below the grid spacing)")
+    pts = np.asarray(room["origin"], float) + ijk * sp
+    g = pts @ R_w2g.T
+    return np.percentile(g, 0.5, axis=0), np.percentile(g, 99.5, axis=0)
+
+
+def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.random(n, random_state=rng).as_matrix()
+
+
+def spawn(bodies: list[Body], model: Model, up: np.ndarray, settings: DropSettings,
+          rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray
+          ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Non-overlapping random model-to-world poses in the spawn box, or None when none was found.
+
+    Returns ``(R_m2w (N,3,3), t_m2w (N,3))``.
+    """
+    from pipeline.physics.collide import room_distance
+
+    R_w2g = gravity_frame(up)
+    ext = hi - lo
+    m = 0.5 * (1 - settings.spawn_xy)
+    box_lo = np.array([lo[0] + m * ext[0], lo[1] + m * ext[1], lo[2] + settings.spawn_z[0] * ext[2]])
+    box_hi = np.array([hi[0] - m * ext[0], hi[1] - m * ext[1], lo[2] + settings.spawn_z[1] * ext[2]])
+    N = len(bodies)
+    Rs = _random_rotations(rng, N)
+    com_w = np.zeros((N, 3))
+    for i in range(N):
+        r = model.body_bound[i]
+        for _ in range(settings.spawn_tries):
+            c = R_w2g.T @ rng.uniform(box_lo, box_hi)
+            if i and np.any(np.linalg.norm(com_w[:i] - c, axis=1) < model.body_bound[:i] + r + 0.005):
+                continue
+            if model.has_room:
+                d, _ = room_distance(model, c[None], gradient=False)
+                if not d[0] > r + model.room_thickness + 0.005:
+                    continue
+            com_w[i] = c
+            break
+        else:
+            return None
+    # com_w is the body frame origin (com); convert to model-frame translations
+    R_b2w = Rs @ np.transpose(model.body_R_m2b, (0, 2, 1))
+    t = com_w + np.einsum("bij,bj->bi", R_b2w, model.body_t_m2b)
+    return Rs, t
+
+
+def simulate_drop(bodies: list[Body], *, room: dict | None, up: np.ndarray, settings: DropSettings,
+                  rng: np.random.Generator, planes: np.ndarray | None = None,
+                  bounds: tuple[np.ndarray, np.ndarray] | None = None) -> DropResult:
+    """Spawn ``bodies`` above the room and simulate them to rest.
+
+    Parameters
+    ----------
+    bodies
+        Body descriptions (object-model frames, metres, kg).
+    room
+        Room proxy (``origin``, ``spacing``, ``udf``); None with ``planes`` for plane-only scenes.
+    up
+        (3,) world up vector (gravity is ``-9.81 up``).
+    settings
+        :class:`DropSettings`.
+    rng
+        The drop's own generator.
+    planes
+        (P, 4) extra static half-spaces.
+    bounds
+        (lo, hi) spawn reference bounds in the gravity frame; from the room when None.
+    """
+    up = np.asarray(up, float) / np.linalg.norm(up)
+    opt = Options(timestep=settings.timestep, gravity=tuple(-9.81 * up), friction=settings.friction)
+    model = build_model(bodies, planes=planes, room=room, room_thickness=settings.room_thickness, opt=opt)
+    R_w2g = gravity_frame(up)
+    if bounds is None:
+        if room is None:
+            raise ValueError("simulate_drop needs a room or explicit spawn bounds")
+        bounds = room_bounds(room, R_w2g)
+    lo, hi = bounds
+    poses = spawn(bodies, model, up, settings, rng, lo, hi)
+    N = len(bodies)
+    if poses is None:
+        return DropResult(np.repeat(np.eye(3)[None], N, 0), np.zeros((N, 3)), np.zeros(N, bool), 0.0,
+                          "rejected:spawn", 0.0, 0)
+    R0, t0 = poses
+    vel = np.zeros((N, 3))
+    ang = np.zeros((N, 3))
+    kick = rng.random(N) < settings.p_velocity
+    if np.any(kick):
+        k = int(kick.sum())
+        dirs = rng.normal(size=(k, 3))
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        vel[kick] = dirs * rng.uniform(0, settings.max_speed, (k, 1))
+        axes = rng.normal(size=(k, 3))
+        axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+        ang[kick] = axes * rng.uniform(0, settings.max_spin, (k, 1))
+    state = make_state(model, R0, t0, vel=vel, angvel=ang)
+    return run(model, state, settings, R_w2g=R_w2g, floor=lo[2])
+
+
+def left_room(model: Model, state: State, R_w2g: np.ndarray, floor: float) -> np.ndarray:
+    """(N,) bool: body centres outside the room grid or more than 0.5 m below the room's floor."""
+    out = (state.pos @ R_w2g.T)[:, 2] < floor - 0.5
+    if model.has_room:
+        out |= np.any((state.pos < model.room_origin) | (state.pos > model.room_upper), axis=1)
+    return out
+
+
+def run(model: Model, state: State, settings: DropSettings, *, R_w2g: np.ndarray | None = None,
+        floor: float = -np.inf) -> DropResult:
+    """Step until every body sleeps, a body leaves the room, or ``settings.max_time``."""
+    R_w2g = np.eye(3) if R_w2g is None else R_w2g
+    nsteps = int(round(settings.max_time / model.opt.timestep))
+    verdict = "accepted"
+    k = 0
+    for k in range(1, nsteps + 1):
+        state = step(model, state)
+        if k % 10 == 0 and np.any(left_room(model, state, R_w2g, floor)):
+            verdict = "rejected:left-room"
+            break
+        if np.all(state.asleep):
+            break
+    if verdict == "accepted" and np.any(left_room(model, state, R_w2g, floor)):
+        verdict = "rejected:left-room"
+    pen = penetration(model, state)
+    if verdict == "accepted" and not np.all(state.asleep):
+        verdict = "rejected:never-settled"
+    if verdict == "accepted" and pen > settings.max_penetration:
+        verdict = "rejected:penetration"
+    R, t = model_poses(model, state)
+    return DropResult(R, t, state.asleep.copy(), pen, verdict, state.time, k)

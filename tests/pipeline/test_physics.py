@@ -1,0 +1,373 @@
+"""Analytic tests of the physics engine (pipeline/physics): each sub-step, then whole scenes."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pipeline.errors import InputError
+from pipeline.physics import Body, Options, box_body, build_model, make_state, model_poses, sphere_body, step
+from pipeline.physics.ccd import advance
+from pipeline.physics.collide import collide, room_distance
+from pipeline.physics.drop import DropSettings, run, simulate_drop
+from pipeline.physics.integrate import inertia_world, mat_to_quat, quat_to_mat
+from pipeline.physics.solve import project_cone, solve_contacts
+from pipeline.physics.step import external, penetration
+from pipeline.tolerances import PHYS_REST_HEIGHT_TOL
+
+G = 9.81
+FLOOR = np.array([[0.0, 0.0, 1.0, 0.0]])
+NO_SLEEP = Options(sleep_time=1e9)
+
+
+def _run(model, state, seconds):
+    for _ in range(int(round(seconds / model.opt.timestep))):
+        state = step(model, state)
+    return state
+
+
+def _sheet_room(half=0.5, spacing=0.02):
+    """A zero-thickness horizontal sheet at z = 0 as an unsigned distance grid (open, one-sided)."""
+    ax = np.arange(-half, half + 1e-9, spacing)
+    _, _, Z = np.meshgrid(ax, ax, ax, indexing="ij")
+    return {"origin": np.full(3, -half), "spacing": spacing, "udf": np.abs(Z).astype(np.float32)}
+
+
+def _box_room(size=(2.0, 2.0, 2.0), spacing=0.04, hole=None):
+    """Floor and four walls (no ceiling) as a distance grid; ``hole`` = (x0, x1, y0, y1) cut in the floor."""
+    xs, ys, zs = (np.arange(0, s + 1e-9, spacing) for s in size)
+    X, Y, Z = np.meshgrid(xs, ys, zs, indexing="ij")
+    if hole is None:
+        floor = Z
+    else:
+        x0, x1, y0, y1 = hole
+        dx = np.maximum(np.maximum(x0 - X, X - x1), 0)
+        dy = np.maximum(np.maximum(y0 - Y, Y - y1), 0)
+        inside = (dx == 0) & (dy == 0)
+        edge = np.minimum.reduce([np.abs(X - x0), np.abs(X - x1), np.abs(Y - y0), np.abs(Y - y1)])
+        floor = np.where(inside, np.sqrt(edge ** 2 + Z ** 2), Z)
+    udf = np.minimum.reduce([floor, X, size[0] - X, Y, size[1] - Y])
+    return {"origin": np.zeros(3), "spacing": spacing, "udf": udf.astype(np.float32)}
+
+
+def _energy(model, state):
+    R = quat_to_mat(state.quat)
+    L = np.einsum("bij,bj->bi", inertia_world(R, model.body_inertia), state.angvel)
+    ke = 0.5 * np.sum(model.body_mass * np.sum(state.vel ** 2, 1)) + 0.5 * np.sum(state.angvel * L)
+    pe = -np.sum(model.body_mass * (state.pos @ np.asarray(model.opt.gravity)))
+    return ke + pe
+
+
+# --- model and types -------------------------------------------------------------------------------
+
+def test_build_model_rejects_bad_bodies():
+    good = box_body([0.1, 0.1, 0.1], 1.0)
+    with pytest.raises(InputError, match="mass"):
+        build_model([dataclasses.replace(good, mass=-1.0)])
+    with pytest.raises(InputError, match="positive definite"):
+        build_model([dataclasses.replace(good, inertia=-np.eye(3))])
+    with pytest.raises(InputError, match="triangle"):
+        build_model([dataclasses.replace(good, inertia=np.diag([1.0, 1.0, 5.0]))])
+    flat = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], float)
+    with pytest.raises(InputError, match="no volume"):
+        build_model([dataclasses.replace(good, vertices=flat)])
+    with pytest.raises(InputError, match="non-finite"):
+        build_model([dataclasses.replace(good, com=np.array([np.nan, 0, 0]))])
+    with pytest.raises(InputError, match="udf"):
+        build_model([good], room={"origin": np.zeros(3), "spacing": 0.1, "udf": np.zeros((4, 4))})
+
+
+def test_model_is_frozen_and_poses_round_trip():
+    body = Body(vertices=np.random.default_rng(0).normal(size=(30, 3)) * 0.1, mass=2.0,
+                com=np.array([0.01, -0.02, 0.03]), inertia=np.diag([0.01, 0.02, 0.025]) + 0.001)
+    m = build_model([body])
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        m.room_spacing = 1.0
+    R = Rotation.from_euler("xyz", [[10, 20, 30]], degrees=True).as_matrix()
+    t = np.array([[0.1, 0.2, 0.3]])
+    s = make_state(m, R, t)
+    R2, t2 = model_poses(m, s)
+    np.testing.assert_allclose(R2, R, atol=1e-12)
+    np.testing.assert_allclose(t2, t, atol=1e-12)
+    # body frame origin is the com
+    np.testing.assert_allclose(s.pos[0], R[0] @ body.com + t[0], atol=1e-12)
+
+
+def test_quaternion_matrix_round_trip():
+    R = Rotation.random(50, random_state=1).as_matrix()
+    np.testing.assert_allclose(quat_to_mat(mat_to_quat(R)), R, atol=1e-12)
+
+
+# --- integration -----------------------------------------------------------------------------------
+
+def test_free_flight_conserves_momentum_and_energy():
+    m = build_model([box_body([0.1, 0.05, 0.02], 2.0)], opt=Options(gravity=(0.0, 0.0, 0.0)))
+    s = make_state(m, np.eye(3)[None], [[0, 0, 0]], vel=[[1.0, 2.0, 3.0]], angvel=[[3.0, 0.2, 5.0]])
+    L0 = inertia_world(quat_to_mat(s.quat), m.body_inertia)[0] @ s.angvel[0]
+    E0 = _energy(m, s)
+    for _ in range(200):
+        s = step(m, s)
+        L = inertia_world(quat_to_mat(s.quat), m.body_inertia)[0] @ s.angvel[0]
+        np.testing.assert_allclose(L, L0, rtol=1e-12, atol=1e-15)
+        assert abs(_energy(m, s) - E0) < 1e-4 * E0
+    np.testing.assert_allclose(s.vel[0], [1, 2, 3], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(s.pos[0], np.array([1, 2, 3]) * 200 * 0.02, rtol=1e-12)
+
+
+def test_free_fall_is_semi_implicit_euler():
+    m = build_model([sphere_body(0.1, 1.0)])
+    s = make_state(m, np.eye(3)[None], [[0, 0, 10.0]])
+    n, dt = 50, m.opt.timestep
+    s = _run(m, s, n * dt)
+    # semi-implicit Euler: z_n = z0 - g dt^2 n (n + 1) / 2, within g t dt / 2 of 1/2 g t^2
+    assert s.pos[0, 2] == pytest.approx(10 - G * dt * dt * n * (n + 1) / 2, abs=1e-9)
+    assert abs(s.pos[0, 2] - (10 - 0.5 * G * (n * dt) ** 2)) <= 0.5 * G * n * dt * dt + 1e-9
+    np.testing.assert_allclose(s.vel[0], [0, 0, -G * n * dt], atol=1e-9)
+
+
+# --- collision -------------------------------------------------------------------------------------
+
+def test_collide_box_on_plane_gives_four_face_contacts():
+    m = build_model([box_body([0.1, 0.1, 0.05], 1.0)], planes=FLOOR)
+    s = make_state(m, np.eye(3)[None], [[0, 0, 0.05]])
+    c = collide(m, s)
+    assert 4 <= c.count <= m.opt.contacts_per_pair
+    np.testing.assert_allclose(c.dist, 0, atol=1e-12)
+    np.testing.assert_allclose(c.normal, np.tile([0, 0, 1.0], (c.count, 1)))
+    assert set(c.body_b) == {-1}
+    # contact reduction keeps the support polygon: all four corners are among the points
+    corners = {(sx, sy) for sx in (-0.1, 0.1) for sy in (-0.1, 0.1)}
+    assert corners <= {tuple(np.round(p[:2], 9)) for p in c.pos}
+
+
+def test_collide_stacked_boxes_use_the_shared_face_normal():
+    m = build_model([box_body([0.05] * 3, 1.0)] * 2)
+    s = make_state(m, np.repeat(np.eye(3)[None], 2, 0), [[0, 0, 0.05], [0.01, 0, 0.15]])
+    c = collide(m, s)
+    touching = np.abs(c.dist) < 1e-9
+    assert touching.sum() >= 4
+    # the touching points push along z, from b to a; the others are speculative (further than 0)
+    np.testing.assert_allclose(np.abs(c.normal[touching, 2]), 1.0)
+    up = np.where(s.pos[c.body_a, 2] > s.pos[c.body_b, 2], 1, -1)
+    assert np.all(np.sign(c.normal[touching, 2]) == up[touching])
+    assert np.all(c.dist[~touching] > 0.005)
+
+
+def test_collide_far_bodies_make_no_contacts():
+    m = build_model([box_body([0.05] * 3, 1.0)] * 2, planes=FLOOR)
+    s = make_state(m, np.repeat(np.eye(3)[None], 2, 0), [[0, 0, 1.0], [1.0, 0, 1.0]])
+    assert collide(m, s).count == 0
+
+
+def test_room_distance_and_normal_on_both_sides_of_a_thin_sheet():
+    m = build_model([sphere_body(0.01, 1.0)], room=_sheet_room())
+    pts = np.array([[0.013, 0.0, 0.1], [0.0, 0.02, -0.07], [2.0, 0, 0]])
+    d, g = room_distance(m, pts)
+    assert d[0] == pytest.approx(0.1, abs=1e-6)
+    assert d[1] == pytest.approx(0.07, abs=1e-6)
+    assert d[2] == np.inf
+    np.testing.assert_allclose(g[0], [0, 0, 1], atol=1e-6)
+    np.testing.assert_allclose(g[1], [0, 0, -1], atol=1e-6)
+
+
+# --- solver ----------------------------------------------------------------------------------------
+
+def test_project_cone():
+    p = np.array([[-1.0, 0.5, 0], [1.0, 3.0, 4.0], [1.0, 0.1, 0.1]])
+    q = project_cone(p, np.array([0.5, 0.5, 0.5]))
+    np.testing.assert_allclose(q[0], 0)
+    np.testing.assert_allclose(q[1], [1.0, 0.3, 0.4])
+    np.testing.assert_allclose(q[2], p[2])
+
+
+def test_solve_resting_box_carries_its_weight():
+    m = build_model([box_body([0.1, 0.1, 0.05], 2.0)], planes=FLOOR, opt=NO_SLEEP)
+    s = make_state(m, np.eye(3)[None], [[0, 0, 0.05]])
+    s = _run(m, s, 1.0)                      # settle into the soft contact
+    active = np.ones(1, bool)
+    v, w = external(m, s, active)
+    c = collide(m, s)
+    res = solve_contacts(m, s, c, v, w, active)
+    assert res.impulse[:, 0].sum() == pytest.approx(2.0 * G * m.opt.timestep, rel=1e-3)
+    assert np.all(np.linalg.norm(res.impulse[:, 1:], axis=1) <= c.friction * res.impulse[:, 0] + 1e-12)
+    assert np.linalg.norm(res.vel) < 1e-3     # m/s, far below the sleep threshold
+
+
+# --- whole scenes (the issue's analytic list) ------------------------------------------------------
+
+def test_box_dropped_on_plane_rests_face_down_at_its_height():
+    h = np.array([0.08, 0.05, 0.03])
+    m = build_model([box_body(h, 1.0)], planes=FLOOR)
+    R = Rotation.from_euler("xyz", [[25, -15, 40]], degrees=True).as_matrix()
+    s = make_state(m, R, [[0, 0, 0.4]])
+    r = run(m, s, DropSettings(max_time=10))
+    assert r.verdict == "accepted" and r.at_rest.all()
+    # face down: one model axis is vertical, and the com sits at that half extent
+    axis = int(np.argmax(np.abs(r.R_m2w[0][2])))
+    assert abs(r.R_m2w[0][2, axis]) > np.cos(np.radians(0.5))
+    assert r.t_m2w[0, 2] == pytest.approx(h[axis], abs=PHYS_REST_HEIGHT_TOL)
+
+
+def test_stack_of_three_boxes_stays_up_for_ten_seconds():
+    m = build_model([box_body([0.05] * 3, 1.0)] * 3, planes=FLOOR, opt=NO_SLEEP)
+    s = make_state(m, np.repeat(np.eye(3)[None], 3, 0), [[0, 0, 0.05], [0, 0, 0.15], [0, 0, 0.25]])
+    s = _run(m, s, 0.5)
+    p_settled = s.pos.copy()
+    # soft contacts sink a little under load (MuJoCo does the same): <= 2 mm for the top box
+    assert np.all(np.abs(p_settled[:, 2] - [0.05, 0.15, 0.25]) < 2e-3)
+    s = _run(m, s, 9.5)
+    assert np.max(np.linalg.norm(s.pos - p_settled, axis=1)) <= 1e-3
+
+
+def _incline(mu, seconds=2.0):
+    th = np.radians(30)
+    n = np.array([-np.sin(th), 0, np.cos(th)])
+    down = np.array([-np.cos(th), 0, -np.sin(th)])
+    R = Rotation.from_euler("y", -30, degrees=True).as_matrix()
+    m = build_model([box_body([0.05] * 3, 1.0, friction=mu)], planes=[[*n, 0.0]], opt=NO_SLEEP)
+    s = make_state(m, R[None], [n * 0.05])
+    speeds, pos = [], []
+    for _ in range(int(seconds / m.opt.timestep)):
+        s = step(m, s)
+        speeds.append(s.vel[0] @ down)
+        pos.append(s.pos[0] @ down)
+    return np.array(speeds), np.array(pos), th
+
+
+def test_block_on_30_degree_incline_slides_with_coulomb_acceleration():
+    v, _, th = _incline(0.2)
+    dt = 0.02
+    acc = (v[-1] - v[20]) / ((len(v) - 1 - 20) * dt)
+    expected = G * (np.sin(th) - 0.2 * np.cos(th))
+    assert acc == pytest.approx(expected, rel=0.02)
+
+
+def test_block_on_30_degree_incline_sticks_when_mu_exceeds_tan30():
+    _, x, _ = _incline(0.7)
+    assert abs(x[-1] - x[0]) < 2e-3
+
+
+@pytest.mark.parametrize("shape", ["ball", "spinning box"])
+def test_fast_body_does_not_pass_a_zero_thickness_sheet(shape):
+    body = sphere_body(0.03, 0.1) if shape == "ball" else box_body([0.03] * 3, 0.1)
+    m = build_model([body], room=_sheet_room(half=1.5, spacing=0.03))
+    assert m.opt.timestep == 0.02
+    s = make_state(m, Rotation.from_euler("xyz", [[10, 20, 30]], degrees=True).as_matrix(), [[0, 0, 0.3]],
+                   vel=[[0, 0, -20.0]], angvel=[[0, 0, 0]] if shape == "ball" else [[15.0, 5.0, 0]])
+    lowest = np.inf
+    for _ in range(100):
+        s = step(m, s)
+        lowest = min(lowest, s.pos[0, 2])
+    assert lowest > 0.0
+    assert s.asleep[0]
+    assert s.pos[0, 2] > 0.02
+
+
+def test_fast_ball_does_not_pass_a_plane():
+    m = build_model([sphere_body(0.03, 0.1)], planes=FLOOR)
+    s = make_state(m, np.eye(3)[None], [[0, 0, 0.3]], vel=[[0, 0, -20.0]])
+    for _ in range(50):
+        s = step(m, s)
+        assert s.pos[0, 2] > 0.03 - 2e-3
+
+
+def test_ccd_stops_a_sweep_through_the_sheet():
+    m = build_model([box_body([0.02] * 3, 0.1)], room=_sheet_room())
+    q = np.array([[1.0, 0, 0, 0]])
+    pos0, pos1 = np.array([[0, 0, 0.2]]), np.array([[0, 0, -0.2]])
+    p, _, v, _, hit = advance(m, pos0, q, pos1, q, np.array([[0, 0, -20.0]]), np.zeros((1, 3)),
+                              np.ones(1, bool))
+    assert hit[0]
+    assert 0.02 < p[0, 2] < 0.2
+    assert v[0, 2] == 0.0
+
+
+def test_energy_never_grows_in_a_resting_pile():
+    bodies = [box_body([0.05, 0.04, 0.03], 1.0), box_body([0.04] * 3, 0.7), sphere_body(0.03, 0.3),
+              box_body([0.06, 0.02, 0.02], 0.5), box_body([0.03] * 3, 0.4)]
+    m = build_model(bodies, planes=FLOOR, opt=NO_SLEEP)
+    R = Rotation.random(5, random_state=4).as_matrix()
+    t = np.array([[0, 0, 0.1], [0.02, 0.01, 0.25], [-0.01, 0.02, 0.4], [0.0, -0.02, 0.55], [0.01, 0, 0.7]])
+    s = _run(m, make_state(m, R, t), 3.0)
+    assert s.pos[4, 2] > 0.08             # the small cube rests on the others: a pile, not a row
+    e = [_energy(m, s)]
+    for _ in range(100):
+        s = step(m, s)
+        e.append(_energy(m, s))
+    # J; soft contacts store ~m g r ~ 1e-3 J in their springs, so allow 1e-4 J of exchange, no gain
+    assert np.max(np.array(e) - e[0]) <= 1e-4
+
+
+def test_bodies_at_rest_sleep_and_are_not_integrated_then_wake_on_contact():
+    m = build_model([box_body([0.05] * 3, 1.0), sphere_body(0.03, 0.5)], planes=FLOOR)
+    s = make_state(m, np.repeat(np.eye(3)[None], 2, 0), [[0, 0, 0.05], [0, 0, 10.0]])
+    for _ in range(60):
+        s = step(m, s)
+    assert s.asleep[0] and not s.asleep[1]
+    frozen = s.pos[0].copy(), s.quat[0].copy()
+    s = step(m, s)
+    assert np.array_equal(s.pos[0], frozen[0]) and np.array_equal(s.quat[0], frozen[1])
+    woke = False
+    for _ in range(100):
+        s = step(m, s)
+        woke |= not s.asleep[0]
+    assert woke                           # the falling ball woke the box
+    assert s.pos[1, 2] > 0.1 - 0.003      # and rests on it, not in it
+
+
+# --- drops -----------------------------------------------------------------------------------------
+
+def _pile_bodies(n, seed=0):
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        if rng.random() < 0.3:
+            out.append(sphere_body(rng.uniform(0.02, 0.05), rng.uniform(0.1, 0.5)))
+        else:
+            out.append(box_body(rng.uniform(0.02, 0.06, 3), rng.uniform(0.1, 0.8)))
+    return out
+
+
+def test_drop_into_room_settles_inside_and_is_deterministic():
+    room = _box_room()
+    st = DropSettings(p_velocity=0.5)
+    a = simulate_drop(_pile_bodies(6), room=room, up=np.array([0, 0, 1.0]), settings=st,
+                      rng=np.random.default_rng(5))
+    b = simulate_drop(_pile_bodies(6), room=room, up=np.array([0, 0, 1.0]), settings=st,
+                      rng=np.random.default_rng(5))
+    assert a.verdict == "accepted", a.verdict
+    assert a.at_rest.all()
+    assert a.max_penetration <= 2e-3
+    assert np.all((a.t_m2w > 0) & (a.t_m2w < 2.0))
+    assert np.all(a.t_m2w[:, 2] < 0.3)    # on the floor or on each other, not floating
+    assert np.array_equal(a.t_m2w, b.t_m2w) and np.array_equal(a.R_m2w, b.R_m2w)
+
+
+def test_drop_through_a_hole_is_rejected_as_left_room():
+    room = _box_room(hole=(0.0, 2.0, 0.0, 2.0))   # no floor at all
+    r = simulate_drop(_pile_bodies(3), room=room, up=np.array([0, 0, 1.0]), settings=DropSettings(),
+                      rng=np.random.default_rng(1))
+    assert r.verdict == "rejected:left-room"
+
+
+def test_drop_that_cannot_settle_in_time_is_rejected():
+    r = simulate_drop(_pile_bodies(3), room=_box_room(), up=np.array([0, 0, 1.0]),
+                      settings=DropSettings(max_time=0.2), rng=np.random.default_rng(1))
+    assert r.verdict == "rejected:never-settled"
+    assert not r.at_rest.all()
+
+
+def test_drop_with_no_free_spawn_pose_is_rejected():
+    big = [box_body([0.4] * 3, 1.0) for _ in range(20)]
+    r = simulate_drop(big, room=_box_room(), up=np.array([0, 0, 1.0]),
+                      settings=DropSettings(spawn_tries=20), rng=np.random.default_rng(1))
+    assert r.verdict == "rejected:spawn"
+
+
+def test_penetration_measure():
+    m = build_model([box_body([0.05] * 3, 1.0)], planes=FLOOR)
+    s = make_state(m, np.eye(3)[None], [[0, 0, 0.047]])
+    assert penetration(m, s) == pytest.approx(0.003)
