@@ -34,7 +34,7 @@ import numpy as np
 from pipeline.errors import UserError
 from pipeline.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, encode_image, read_json
 from pipeline.seeding import item_rng
-from pipeline.synthscan.writers import LAYOUTS, frame_files, frame_id, ply_bytes, write_frame, write_static
+from pipeline.synthscan.writers import LAYOUTS, encode, frame_files, frame_id, ply_bytes, write_frame, write_static
 
 log = logging.getLogger(__name__)
 
@@ -275,7 +275,7 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
             files += write_frame(out, layout, i, photo, depth_mm, poses[i], bool(pose_valid[i]))
             gt_rel = f"{GT_DIR}/depth/frame-{i:06d}.png"
             gt_depth = np.clip(np.round(true_depth.astype(np.float64) / GT_DEPTH_SCALE), 0, 65535).astype(np.uint16)
-            atomic_write_bytes(out / gt_rel, encode_image(gt_rel, gt_depth))
+            atomic_write_bytes(out / gt_rel, encode(gt_rel, gt_depth))
             files.append(gt_rel)
             ff = frame_files(layout, i)
             frame_docs.append({"index": i, "frame_id": frame_id(layout, i), "color": ff.color, "depth": ff.depth,
@@ -352,7 +352,7 @@ def _write_truth(out: Path, room, mesh, smesh, sverts: np.ndarray, T_wc: np.ndar
     mats = []
     for m in room.materials:
         rel = f"{GT_DIR}/textures/{m.name}.png"
-        atomic_write_bytes(out / rel, encode_image(rel, room.textures[m.id]))
+        atomic_write_bytes(out / rel, encode(rel, room.textures[m.id]))
         files.append(rel)
         mats.append({"id": m.id, "name": m.name, "texture_kind": m.kind, "base_color_linear": list(m.base_color),
                      "metres_per_repeat": m.metres_per_repeat, "roughness": m.roughness, "metallic": 0.0,
