@@ -212,7 +212,7 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
     vmat = room.quad_material[mesh.vertex_quad]
     emitter_v = np.array([m.emitter for m in room.materials])[vmat]
     radiance = E / math.pi + room.ambient                     # outgoing radiance per unit albedo
-    exposure = 0.75 / float(np.median(radiance[~emitter_v].mean(axis=1)))
+    exposure = 0.5 / float(np.median(radiance[~emitter_v].mean(axis=1)))
     vertex_radiance = (radiance * exposure).astype(np.float32)
     lamp_L = {L.name: L.radiance for L in room.lights}
     for q, part in enumerate(room.parts):

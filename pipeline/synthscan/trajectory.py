@@ -67,7 +67,7 @@ def walk(room: Room, rng: np.random.Generator, frames: int) -> np.ndarray:
     for i in range(frames):
         eye = np.array([c[0] + rx * math.cos(phi[i]), c[1] + ry * math.sin(phi[i]), height]) + pos_j[i]
         a = phi[i] + math.pi + look_off * math.sin(2 * math.pi * t[i])
-        target = np.array([c[0] + 1.5 * rx * math.cos(a), c[1] + 1.5 * ry * math.sin(a), 0.9])
+        target = np.array([c[0] + 1.2 * rx * math.cos(a), c[1] + 1.2 * ry * math.sin(a), 0.6])
         T = look_at(eye, target, roll=ang_j[i, 2])
         T[:3, :3] = T[:3, :3] @ rotvec_to_matrix(np.array([ang_j[i, 0], ang_j[i, 1], 0.0]))
         poses[i] = T
