@@ -115,25 +115,33 @@ def window_area_in_image(window: tuple[int, int, int, int] | None, width: int, h
     return max(0, min(x1, width) - max(x0, 0)) * max(0, min(y1, height) - max(y0, 0))
 
 
-def outside_tiles(window: tuple[int, int, int, int] | None, width: int,
-                  height: int) -> list[tuple[int, int]]:
-    """Origins of the image-sized canvas tiles other than the image itself that ``window`` touches.
+def split_window(window: tuple[int, int, int, int] | None, width: int, height: int
+                 ) -> tuple[tuple[int, int, int, int] | None, list[tuple[int, int, int, int]]]:
+    """Split a window into its part inside the image and up to four disjoint parts outside it.
 
-    Rendering these tiles at the image's own size (no framebuffer resize) counts the silhouette's
-    truncated part for ``px_count_all``.
+    Returns
+    -------
+    inside : (x0, y0, x1, y1) or None
+    outside : list of (x0, y0, x1, y1)
+        Bands above and below the image (full window width), then left and right of it (image rows).
     """
     if window is None:
-        return []
+        return None, []
     x0, y0, x1, y1 = window
+    ix0, iy0, ix1, iy1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    inside = (ix0, iy0, ix1, iy1) if ix0 < ix1 and iy0 < iy1 else None
     out = []
-    for ty in (-1, 0, 1):
-        for tx in (-1, 0, 1):
-            if tx == 0 and ty == 0:
-                continue
-            ox, oy = tx * width, ty * height
-            if x0 < ox + width and x1 > ox and y0 < oy + height and y1 > oy:
-                out.append((ox, oy))
-    return out
+    if y0 < 0:
+        out.append((x0, y0, x1, min(y1, 0)))
+    if y1 > height:
+        out.append((x0, max(y0, height), x1, y1))
+    ry0, ry1 = max(y0, 0), min(y1, height)
+    if ry0 < ry1:
+        if x0 < 0:
+            out.append((x0, ry0, min(x1, 0), ry1))
+        if x1 > width:
+            out.append((max(x0, width), ry0, x1, ry1))
+    return inside, [r for r in out if r[0] < r[2] and r[1] < r[3]]
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -166,6 +174,33 @@ def compose_front(depths: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     hit = np.isfinite(depth)
     front = np.where(hit, idx + 1, 0).astype(np.uint16)
     return np.where(hit, depth, 0).astype(np.float32), front
+
+
+def compose_front_crops(crops: list[tuple[np.ndarray, int, int] | None], width: int,
+                        height: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`compose_front` from per-instance depth crops (a running minimum over each crop only).
+
+    Parameters
+    ----------
+    crops : list of ((h, w) float32 depth, x0, y0) or None
+        Instance ``i``'s depth over the image pixels ``[y0, y0+h) x [x0, x0+w)`` (inside the image);
+        None when it covers no image pixel.
+    """
+    if len(crops) >= np.iinfo(np.uint16).max:
+        raise ValueError(f"{len(crops)} instances: at most {np.iinfo(np.uint16).max - 1} fit uint16 labels")
+    depth = np.zeros((height, width), np.float32)
+    front = np.zeros((height, width), np.uint16)
+    for i, c in enumerate(crops):
+        if c is None:
+            continue
+        d, x0, y0 = c
+        h, w = d.shape
+        sub = depth[y0:y0 + h, x0:x0 + w]
+        fsub = front[y0:y0 + h, x0:x0 + w]
+        m = (d > 0) & ((sub == 0) | (d < sub))
+        sub[m] = d[m]
+        fsub[m] = i + 1
+    return depth, front
 
 
 def real_depth_tolerance(depth: np.ndarray, tol_abs: float, tol_rel: float) -> np.ndarray:
@@ -264,8 +299,8 @@ def unpack_masks(packed: np.ndarray, width: int) -> np.ndarray:
 
 def instance_annotations(*, obj_ids: np.ndarray, R_m2c: np.ndarray, t_m2c: np.ndarray,
                          amodal: np.ndarray, px_outside: np.ndarray, box_outside: list,
-                         labels: np.ndarray, valid_depth: np.ndarray,
-                         visib_threshold: float) -> list[dict]:
+                         labels: np.ndarray, valid_depth: np.ndarray, visib_threshold: float,
+                         rects: list | None = None) -> list[dict]:
     """BOP ``scene_gt`` + ``scene_gt_info`` entries of every instance (metres; mm only in the writer).
 
     Parameters
@@ -285,6 +320,9 @@ def instance_annotations(*, obj_ids: np.ndarray, R_m2c: np.ndarray, t_m2c: np.nd
         Pixels with a valid depth in the written depth image.
     visib_threshold : float
         An instance counts as visible (``"visible": true``) from this visible fraction on.
+    rects : list of N ``(x0, y0, x1, y1)`` or None, optional
+        Image rectangle holding each instance's silhouette (None = empty); counting is restricted to
+        it (same result, less work). Default: the whole image.
 
     Returns
     -------
@@ -293,15 +331,20 @@ def instance_annotations(*, obj_ids: np.ndarray, R_m2c: np.ndarray, t_m2c: np.nd
         px_count_visib, visib_fract, visible``.
     """
     out = []
+    h, w = labels.shape
     for i in range(len(obj_ids)):
-        m = amodal[i]
-        vis = labels == i + 1
+        r = (0, 0, w, h) if rects is None else rects[i]
+        if r is None:
+            r = (0, 0, 0, 0)
+        x0, y0, x1, y1 = r
+        m = amodal[i, y0:y1, x0:x1]
+        vis = labels[y0:y1, x0:x1] == i + 1
         px_in = int(m.sum())
         px_all = px_in + int(px_outside[i])
         px_visib = int(vis.sum())
         fract = px_visib / px_all if px_all > 0 else 0.0
-        box_obj = union_box(bbox_xywh(m), box_outside[i]) if px_visib > 0 else None
-        box_vis = bbox_xywh(vis) if px_visib > 0 else None
+        box_obj = union_box(bbox_xywh(m, x0, y0), box_outside[i]) if px_visib > 0 else None
+        box_vis = bbox_xywh(vis, x0, y0) if px_visib > 0 else None
         out.append({
             "inst_id": i,
             "obj_id": int(obj_ids[i]),
@@ -310,7 +353,7 @@ def instance_annotations(*, obj_ids: np.ndarray, R_m2c: np.ndarray, t_m2c: np.nd
             "bbox_obj": list(box_obj or NO_BOX),
             "bbox_visib": list(box_vis or NO_BOX),
             "px_count_all": px_all,
-            "px_count_valid": int((m & valid_depth).sum()),
+            "px_count_valid": int((m & valid_depth[y0:y1, x0:x1]).sum()),
             "px_count_visib": px_visib,
             "visib_fract": float(fract),
             "visible": bool(px_visib > 0 and fract >= visib_threshold),

@@ -5,9 +5,9 @@ For each (scene, drop, frame) item:
 1. Camera-from-model poses of the instances; each instance's projected window (from its vertices).
    **Early rejection** before any rendering: when even the sum of the windows' areas inside the image
    is below ``raster.min_visible_area`` of the image, the frame cannot reach it and is rejected.
-2. **Object passes**: each instance alone (amodal depth, so amodal masks and the object depth/label
-   composition come from the same rasterization), plus the parts of its silhouette outside the image
-   (for BOP's ``px_count_all``). Nearest instance per pixel -> object depth and front labels (uint16:
+2. **Object passes**: each instance alone over its projected window (amodal depth, so amodal masks
+   and the object depth/label composition come from the same rasterization), plus the parts of its
+   silhouette outside the image (for BOP's ``px_count_all``). Nearest instance per pixel -> object depth and front labels (uint16:
    no 255-object limit). Second rejection check on the amodal union, before the room pass.
 3. **Scene depth**: the room mesh's depth at the frame, rendered once per frame and cached on disk
    (``RUN/raster/<scene>/scene_depth/f<frame:06d>.npz``), shared by every drop.
@@ -56,6 +56,9 @@ from pipeline.types import ObjectModel, Placement, Scan
 log = logging.getLogger(__name__)
 
 SCENE_DEPTH_DIR = "scene_depth"
+# Objects are rendered in windows of at most TILE x TILE pixels (one fixed-size GL context): reading
+# back and linearising a whole frame per object would cost more than drawing most objects.
+TILE = 256
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -131,6 +134,30 @@ def ensure_objects(rasterizer, objects: Sequence[ObjectModel]) -> dict[int, str]
 # One frame
 # ---------------------------------------------------------------------------------------------------
 
+def render_rect(rasterizer, K: np.ndarray, T_c2w: np.ndarray, instances, rect: tuple[int, int, int, int],
+                tile: tuple[int, int], image: tuple[int, int]) -> np.ndarray:
+    """Depth of ``instances`` over the pixel rectangle ``rect = (x0, y0, x1, y1)`` of the image plane.
+
+    One render in a ``tile``-sized window when the rectangle fits in it, else image-sized windows
+    covering it (the only two viewport sizes used for objects).
+
+    Returns
+    -------
+    (y1 - y0, x1 - x0) float32, metres, 0 = not covered.
+    """
+    x0, y0, x1, y1 = rect
+    w, h = x1 - x0, y1 - y0
+    if w <= tile[0] and h <= tile[1]:
+        return rasterizer.render_depth(K, T_c2w, tile[0], tile[1], instances, x0=x0, y0=y0)[:h, :w]
+    out = np.zeros((h, w), np.float32)
+    W, H = image
+    for ty in range(y0, y1, H):
+        for tx in range(x0, x1, W):
+            d = rasterizer.render_depth(K, T_c2w, W, H, instances, x0=tx, y0=ty)
+            out[ty - y0:ty - y0 + H, tx - x0:tx - x0 + W] = d[:min(H, y1 - ty), :min(W, x1 - tx)]
+    return out
+
+
 @dataclass(frozen=True)
 class FrameResult:
     """Passes and annotations of one frame of one drop."""
@@ -146,6 +173,7 @@ class FrameResult:
     depth: np.ndarray | None = None    # (H, W) float32, nearest object depth, metres, 0 = none
     labels: np.ndarray | None = None   # (H, W) uint16, visible instance index + 1
     amodal: np.ndarray | None = None   # (N, H, W) bool, silhouettes inside the image
+    front: np.ndarray | None = None    # (H, W) uint16, nearest instance index + 1 before room occlusion
     stats: dict = field(default_factory=dict)  # pixel counts: objects, occluded by room / real depth
 
 
@@ -186,29 +214,33 @@ def render_frame(rasterizer, *, K: np.ndarray, T_c2w: np.ndarray, width: int, he
         return FrameResult(status="rejected", reason=reason, check=check, stats=extra, **base)
 
     windows = [annotate.projected_window(K, R_m2c[i], t_m2c[i],
-                                         rasterizer.mesh_vertices(mesh_keys[int(placement.obj_ids[i])]),
+                                         rasterizer.hull_vertices(mesh_keys[int(placement.obj_ids[i])]),
                                          width, height, rasterizer.znear) for i in range(n)]
     bound = sum(annotate.window_area_in_image(w, width, height) for w in windows) / area
     if bound < cfg.min_visible_area:
         return reject("bound", f"objects project onto at most {bound:.2%} of the image "
                                f"(< raster.min_visible_area = {cfg.min_visible_area:.2%})", bound_share=bound)
 
-    depths = np.zeros((n, height, width), np.float32)
+    tile = (min(TILE, width), min(TILE, height))
+    crops: list = [None] * n
+    rects: list = [None] * n
+    amodal = np.zeros((n, height, width), bool)
     px_outside = np.zeros(n, np.int64)
     box_outside: list = [None] * n
     for i in range(n):
-        if windows[i] is None:
-            continue
+        inside, outside = annotate.split_window(windows[i], width, height)
         T_m2w = annotate.rigid(placement.R_m2w[i], placement.t_m2w[i])
         inst = [(mesh_keys[int(placement.obj_ids[i])], T_m2w)]
-        if annotate.window_area_in_image(windows[i], width, height) > 0:
-            depths[i] = rasterizer.render_depth(K, T_c2w, width, height, inst)
-        for ox, oy in annotate.outside_tiles(windows[i], width, height):
-            tile = rasterizer.render_depth(K, T_c2w, width, height, inst, x0=ox, y0=oy) > 0
-            px_outside[i] += int(tile.sum())
-            box_outside[i] = annotate.union_box(box_outside[i], annotate.bbox_xywh(tile, ox, oy))
-    depth, front = annotate.compose_front(depths)
-    amodal = depths > 0
+        rects[i] = inside
+        if inside is not None:
+            d = render_rect(rasterizer, K, T_c2w, inst, inside, tile, (width, height))
+            crops[i] = (d, inside[0], inside[1])
+            amodal[i, inside[1]:inside[3], inside[0]:inside[2]] = d > 0
+        for rect in outside:
+            hit = render_rect(rasterizer, K, T_c2w, inst, rect, tile, (width, height)) > 0
+            px_outside[i] += int(hit.sum())
+            box_outside[i] = annotate.union_box(box_outside[i], annotate.bbox_xywh(hit, rect[0], rect[1]))
+    depth, front = annotate.compose_front_crops(crops, width, height)
     obj_px = int((front > 0).sum())
     if obj_px / area < cfg.min_visible_area:
         return reject("amodal", f"objects cover {obj_px / area:.2%} of the image before occlusion "
@@ -228,9 +260,9 @@ def render_frame(rasterizer, *, K: np.ndarray, T_c2w: np.ndarray, width: int, he
     valid = (labels > 0) | (background > 0)
     inst = annotate.instance_annotations(obj_ids=placement.obj_ids, R_m2c=R_m2c, t_m2c=t_m2c, amodal=amodal,
                                          px_outside=px_outside, box_outside=box_outside, labels=labels,
-                                         valid_depth=valid, visib_threshold=cfg.visib_threshold)
+                                         valid_depth=valid, visib_threshold=cfg.visib_threshold, rects=rects)
     return FrameResult(status="ok", reason="", check="", instances=inst, depth=depth, labels=labels,
-                       amodal=amodal, stats=stats, **base)
+                       amodal=amodal, front=front, stats=stats, **base)
 
 
 def frame_doc(result: FrameResult, *, scene: str, drop: int, frame: int, frame_id: int,

@@ -1,6 +1,6 @@
 """Depth rasterizer for posed triangle meshes: the OpenGL backend (pyrender on OSMesa, EGL optional).
 
-A small interface: :class:`MeshRasterizer` keeps named meshes uploaded in one GL context and renders the
+A small interface: :class:`MeshRasterizer` keeps named meshes uploaded in its GL contexts and renders the
 metric z-depth of any subset of them, placed by 4x4 model-to-world poses, seen by an OpenCV pinhole
 camera, over the whole image or a rectangular window of it (possibly outside the image: the window is
 only a shift of the principal point). Labels and masks are derived from depth by
@@ -11,11 +11,14 @@ The OpenCV -> OpenGL camera conversion lives in this module only (:func:`gl_came
 ``u = c, v = r`` (the pixel centre): OpenGL samples at ``c + 0.5``, so the principal point passed to
 GL is shifted by half a pixel.
 
-One OffscreenRenderer per process, deliberately: creating and destroying OSMesa contexts per frame
-leaks memory in pyrender and costs tens of milliseconds, so :func:`shared_rasterizer` builds one
-lazily and keeps it for the life of the process (stage workers are spawned processes, each with its
-own). Meshes stay uploaded between frames; the least recently used ones are released beyond a budget
-of triangles, so memory stays flat over long runs.
+Renderers are reused deliberately: creating and destroying OSMesa contexts per frame leaks memory in
+pyrender and costs tens of milliseconds, and resizing one re-creates its framebuffers (~0.1 s), so a
+:class:`MeshRasterizer` keeps one OffscreenRenderer per viewport size it is asked for (the image size
+for the room, a fixed small tile for objects: reading back and linearising a full frame per object
+would cost more than drawing it), at most ``max_views`` of them. :func:`shared_rasterizer` builds one
+rasterizer lazily and keeps it for the life of the process (stage workers are spawned processes,
+each with its own). Meshes stay uploaded between frames; the least recently used ones are released
+beyond a budget of triangles, so memory stays flat over long runs.
 """
 
 from __future__ import annotations
@@ -70,15 +73,110 @@ def gl_intrinsics(K: np.ndarray, x0: int = 0, y0: int = 0) -> tuple[float, float
     return (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]) - x0 + 0.5, float(K[1, 2]) - y0 + 0.5)
 
 
+def _fix_program_cache(renderer) -> None:
+    """Make pyrender reuse its compiled shader programs under OSMesa.
+
+    pyrender keys its program cache on ``OpenGL.contextdata.getContext()``, which under OSMesa returns a
+    new Python object on every call: every render missed the cache, compiled and linked a fresh
+    program (a few ms of llvmpipe JIT, most of the cost of drawing a small object) and kept the old
+    one (memory grew with every frame). A view owns its context, so the context is dropped from the
+    key here.
+    """
+    import importlib
+
+    base = importlib.import_module("pyrender.shader_program").ShaderProgramCache
+    old = renderer._renderer._program_cache
+
+    class StableProgramCache(base):
+        def __init__(self):
+            super().__init__(shader_dir=old.shader_dir)
+            self._stable = {}
+
+        def get_program(self, vertex_shader, fragment_shader, geometry_shader=None, defines=None):
+            key = (vertex_shader, fragment_shader, geometry_shader, tuple(sorted((defines or {}).items())))
+            prog = self._stable.get(key)
+            if prog is None:
+                prog = self._stable[key] = super().get_program(vertex_shader, fragment_shader,
+                                                               geometry_shader, defines)
+            return prog
+
+        def clear(self):
+            super().clear()
+            self._stable = {}
+
+    renderer._renderer._program_cache = StableProgramCache()
+
+
+class _View:
+    """One OffscreenRenderer (GL context) of a fixed viewport size, with its own uploaded meshes.
+
+    pyrender stores GL buffer ids on the mesh objects, so a mesh lives in exactly one context; and
+    changing a renderer's size re-creates its framebuffers (~0.1 s on OSMesa). So each viewport size
+    gets its own context and never changes size.
+    """
+
+    def __init__(self, pr, width: int, height: int, znear: float, zfar: float):
+        self.pr = pr
+        self.renderer = pr.OffscreenRenderer(width, height)
+        _fix_program_cache(self.renderer)
+        self.scene = pr.Scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=(0.0, 0.0, 0.0))
+        self.camera = pr.IntrinsicsCamera(1.0, 1.0, 0.0, 0.0, znear=znear, zfar=zfar)
+        self.cam_node = self.scene.add(self.camera, pose=np.eye(4))
+        self.meshes: dict[str, tuple] = {}  # key -> (pyrender.Mesh, anchor node keeping it uploaded)
+
+    def ensure(self, key: str, vertices: np.ndarray, faces: np.ndarray) -> None:
+        if key in self.meshes:
+            return
+        pr = self.pr
+        mat = pr.MetallicRoughnessMaterial(doubleSided=True)
+        prim = pr.Primitive(positions=np.ascontiguousarray(vertices, dtype=np.float32),
+                            indices=np.ascontiguousarray(faces, dtype=np.uint32),
+                            mode=pr.constants.GLTF.TRIANGLES, material=mat)
+        mesh = pr.Mesh([prim])
+        self.meshes[key] = (mesh, self.scene.add(mesh, pose=np.eye(4)))
+
+    def drop(self, key: str) -> None:
+        entry = self.meshes.pop(key, None)
+        if entry is not None:
+            self.scene.remove_node(entry[1])
+
+    def draw(self, K, T_c2w, instances, x0, y0, with_ids: bool):
+        pr = self.pr
+        fx, fy, cx, cy = gl_intrinsics(K, x0, y0)
+        cam = self.camera
+        cam.fx, cam.fy, cam.cx, cam.cy = fx, fy, cx, cy
+        self.scene.set_pose(self.cam_node, gl_camera_pose(T_c2w))
+        nodes = {}
+        for i, (key, T_m2w) in enumerate(instances):
+            node = self.scene.add(self.meshes[key][0], pose=np.asarray(T_m2w, dtype=np.float64))
+            n = i + 1  # instance index + 1 as a 24-bit flat colour, so 0 (black) is "nothing"
+            nodes[node] = (n & 0xFF, (n >> 8) & 0xFF, (n >> 16) & 0xFF)
+        flags = pr.RenderFlags.SEG if with_ids else pr.RenderFlags.DEPTH_ONLY | pr.RenderFlags.SEG
+        try:
+            # SEG restricts drawing to the listed nodes, draws flat colours and disables multisampling,
+            # so depth and ids are sampled exactly at pixel centres.
+            return self.renderer.render(self.scene, flags=flags, seg_node_map=nodes)
+        finally:
+            for node in nodes:
+                self.scene.remove_node(node)
+
+    def release(self) -> None:
+        for key in list(self.meshes):
+            self.drop(key)
+        self.renderer.delete()
+
+
 class MeshRasterizer:
-    """Metric depth of posed meshes through one pyrender OffscreenRenderer.
+    """Metric depth of posed meshes through pyrender OffscreenRenderers (one per viewport size).
 
     Parameters
     ----------
     znear, zfar : float
         Clip planes, metres. Geometry nearer than ``znear`` is clipped (not drawn).
     max_triangles : int
-        Triangle budget of the meshes kept uploaded; least recently used meshes beyond it are released.
+        Triangle budget of the meshes kept; least recently used meshes beyond it are released.
+    max_views : int
+        Viewport sizes kept (each is a GL context with its own copy of the meshes it drew).
 
     Examples
     --------
@@ -87,25 +185,24 @@ class MeshRasterizer:
     >>> depth = r.render_depth(K, T_c2w, 640, 480, [("cube", T_m2w)])  # doctest: +SKIP
     """
 
-    def __init__(self, *, znear: float = 0.01, zfar: float = 100.0, max_triangles: int = 8_000_000):
-        pr = pyrender_module()
-        self._pr = pr
+    def __init__(self, *, znear: float = 0.01, zfar: float = 100.0, max_triangles: int = 8_000_000,
+                 max_views: int = 3):
+        self._pr = pyrender_module()
         self.znear, self.zfar = float(znear), float(zfar)
         self.max_triangles = int(max_triangles)
-        self._renderer = pr.OffscreenRenderer(64, 64)
-        self._scene = pr.Scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=(0.0, 0.0, 0.0))
-        self._camera = pr.IntrinsicsCamera(1.0, 1.0, 0.0, 0.0, znear=self.znear, zfar=self.zfar)
-        self._cam_node = self._scene.add(self._camera, pose=np.eye(4))
-        # key -> (pyrender.Mesh, anchor node keeping it uploaded, vertices (V,3) float64, n_triangles)
-        self._meshes: OrderedDict[str, tuple] = OrderedDict()
+        self.max_views = int(max_views)
+        self._views: OrderedDict[tuple[int, int], _View] = OrderedDict()
+        # key -> (vertices (V,3) float64, faces (T,3) int64); uploaded lazily into each view that draws it
+        self._meshes: OrderedDict[str, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._hulls: dict[str, np.ndarray] = {}
 
     # -- meshes ------------------------------------------------------------------------------------
     def has_mesh(self, key: str) -> bool:
-        """Whether a mesh named ``key`` is uploaded."""
+        """Whether a mesh named ``key`` is held."""
         return key in self._meshes
 
     def add_mesh(self, key: str, vertices: np.ndarray, faces: np.ndarray) -> None:
-        """Upload a triangle mesh under ``key`` (replacing one of the same name).
+        """Hold a triangle mesh under ``key`` (replacing one of the same name).
 
         Parameters
         ----------
@@ -114,68 +211,75 @@ class MeshRasterizer:
         faces : (T, 3) int
             Vertex indices. Both sides are drawn (scan meshes are open and inconsistently wound).
         """
-        pr = self._pr
-        v = np.ascontiguousarray(vertices, dtype=np.float32)
-        f = np.ascontiguousarray(faces, dtype=np.uint32)
+        v = np.asarray(vertices, dtype=np.float64)
+        f = np.asarray(faces, dtype=np.int64)
         if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
-            raise ValueError(f"mesh {key!r}: expected (V,3) vertices and (T,3) faces, "
-                             f"got {v.shape} and {f.shape}")
+            raise ValueError(f"mesh {key!r}: expected (V,3) vertices and (T,3) faces, got {v.shape} and {f.shape}")
+        if f.size and (f.min() < 0 or f.max() >= len(v)):
+            raise ValueError(f"mesh {key!r}: face indices outside 0..{len(v) - 1}")
         self.remove_mesh(key)
-        mat = pr.MetallicRoughnessMaterial(doubleSided=True)
-        prim = pr.Primitive(positions=v, indices=f, mode=pr.constants.GLTF.TRIANGLES, material=mat)
-        mesh = pr.Mesh([prim])
-        anchor = self._scene.add(mesh, pose=np.eye(4))
-        self._meshes[key] = (mesh, anchor, np.asarray(vertices, dtype=np.float64), int(f.shape[0]))
+        self._meshes[key] = (v, f)
         self._evict(keep=key)
 
     def remove_mesh(self, key: str) -> None:
-        """Release the mesh ``key`` (its GL buffers are freed at the next render)."""
-        entry = self._meshes.pop(key, None)
-        if entry is not None:
-            self._scene.remove_node(entry[1])
+        """Release the mesh ``key`` (its GL buffers are freed at the next render of each view)."""
+        self._hulls.pop(key, None)
+        if self._meshes.pop(key, None) is not None:
+            for view in self._views.values():
+                view.drop(key)
 
     def mesh_vertices(self, key: str) -> np.ndarray:
-        """(V, 3) float64 vertices of the uploaded mesh ``key`` (model frame, metres)."""
-        return self._meshes[key][2]
+        """(V, 3) float64 vertices of the mesh ``key`` (model frame, metres)."""
+        return self._meshes[key][0]
+
+    def hull_vertices(self, key: str) -> np.ndarray:
+        """(H, 3) float64 convex-hull vertices of the mesh ``key`` (computed once): projecting these
+        bounds the mesh's silhouette as tightly as projecting every vertex."""
+        v, f = self._meshes[key]
+        hull = self._hulls.get(key)
+        if hull is None:
+            hull = v
+            if len(v) > 64:
+                from scipy.spatial import ConvexHull, QhullError
+
+                try:
+                    hull = v[ConvexHull(v).vertices]
+                except (QhullError, ValueError):  # flat or degenerate: all vertices bound it
+                    hull = v
+            self._hulls[key] = hull
+        return hull
 
     def _evict(self, keep: str) -> None:
-        total = sum(e[3] for e in self._meshes.values())
+        total = sum(len(f) for _, f in self._meshes.values())
         for key in list(self._meshes):
             if total <= self.max_triangles:
                 break
             if key == keep:
                 continue
-            total -= self._meshes[key][3]
+            total -= len(self._meshes[key][1])
             log.debug("releasing mesh %s (triangle budget %d)", key, self.max_triangles)
             self.remove_mesh(key)
 
+    def _view(self, width: int, height: int) -> _View:
+        size = (int(width), int(height))
+        view = self._views.get(size)
+        if view is None:
+            while len(self._views) >= self.max_views:
+                _, old = self._views.popitem(last=False)
+                old.release()
+            view = self._views[size] = _View(self._pr, size[0], size[1], self.znear, self.zfar)
+        self._views.move_to_end(size)
+        return view
+
     # -- rendering ---------------------------------------------------------------------------------
-    def _draw(self, K: np.ndarray, T_c2w: np.ndarray, width: int, height: int,
-              instances: Sequence[tuple[str, np.ndarray]], x0: int, y0: int, with_ids: bool):
-        pr = self._pr
-        fx, fy, cx, cy = gl_intrinsics(K, x0, y0)
-        cam = self._camera
-        cam.fx, cam.fy, cam.cx, cam.cy = fx, fy, cx, cy
-        self._scene.set_pose(self._cam_node, gl_camera_pose(T_c2w))
-        nodes = {}
-        for i, (key, T_m2w) in enumerate(instances):
-            mesh = self._meshes[key][0]
+    def _draw(self, K, T_c2w, width, height, instances, x0, y0, with_ids):
+        view = self._view(width, height)
+        for key, _ in instances:
+            v, f = self._meshes[key]
             self._meshes.move_to_end(key)
-            node = self._scene.add(mesh, pose=np.asarray(T_m2w, dtype=np.float64))
-            n = i + 1  # instance index + 1 as a 24-bit flat colour, so 0 (black) is "nothing"
-            nodes[node] = (n & 0xFF, (n >> 8) & 0xFF, (n >> 16) & 0xFF)
-        r = self._renderer
-        # A size change re-creates the framebuffers (~0.1 s on OSMesa): callers keep one size per frame.
-        if r.viewport_width != width or r.viewport_height != height:
-            r.viewport_width, r.viewport_height = int(width), int(height)
-        flags = pr.RenderFlags.SEG if with_ids else pr.RenderFlags.DEPTH_ONLY | pr.RenderFlags.SEG
-        try:
-            # SEG restricts drawing to the listed nodes, draws flat colours and disables multisampling,
-            # so depth and ids are sampled exactly at pixel centres.
-            return r.render(self._scene, flags=flags, seg_node_map=nodes)
-        finally:
-            for node in nodes:
-                self._scene.remove_node(node)
+            view.ensure(key, v, f)
+        return view.draw(np.asarray(K, dtype=np.float64), np.asarray(T_c2w, dtype=np.float64), instances,
+                         x0, y0, with_ids)
 
     def render_depth(self, K: np.ndarray, T_c2w: np.ndarray, width: int, height: int,
                      instances: Sequence[tuple[str, np.ndarray]], *, x0: int = 0, y0: int = 0) -> np.ndarray:
@@ -188,7 +292,8 @@ class MeshRasterizer:
         T_c2w : (4, 4) float64
             Camera-to-world, metres, OpenCV axes.
         width, height : int
-            Window size, pixels. Keep it the same from call to call (see :meth:`_draw`).
+            Window size, pixels. Each distinct size is a GL context of its own (see :class:`_View`):
+            use few sizes (the image size, a fixed tile size).
         instances : sequence of (key, (4, 4) float64 T_m2w)
             Meshes (by key) and their model-to-world poses; only these are drawn.
         x0, y0 : int
@@ -225,10 +330,10 @@ class MeshRasterizer:
         return np.ascontiguousarray(depth, dtype=np.float32), ids
 
     def release(self) -> None:
-        """Free the GL context (the object is unusable afterwards)."""
-        for key in list(self._meshes):
-            self.remove_mesh(key)
-        self._renderer.delete()
+        """Free the GL contexts (the object is unusable afterwards)."""
+        while self._views:
+            self._views.popitem()[1].release()
+        self._meshes.clear()
 
 
 @functools.lru_cache(maxsize=1)

@@ -41,11 +41,32 @@ def test_projected_window_contains_projection_and_is_clipped():
         annotate.canvas(100, 80)
 
 
-def test_outside_tiles():
-    assert annotate.outside_tiles((10, 10, 20, 20), 100, 80) == []
-    assert annotate.outside_tiles((-5, 10, 20, 20), 100, 80) == [(-100, 0)]
-    assert len(annotate.outside_tiles(annotate.canvas(100, 80), 100, 80)) == 8
-    assert annotate.outside_tiles(None, 100, 80) == []
+def test_split_window():
+    assert annotate.split_window((10, 10, 20, 20), 100, 80) == ((10, 10, 20, 20), [])
+    assert annotate.split_window((-5, 10, 20, 20), 100, 80) == ((0, 10, 20, 20), [(-5, 10, 0, 20)])
+    inside, out = annotate.split_window(annotate.canvas(100, 80), 100, 80)
+    assert inside == (0, 0, 100, 80)
+    area = sum((r[2] - r[0]) * (r[3] - r[1]) for r in out)
+    assert area == 300 * 240 - 100 * 80  # disjoint cover of the canvas minus the image
+    assert annotate.split_window((120, -30, 150, -10), 100, 80) == (None, [(120, -30, 150, -10)])
+    assert annotate.split_window(None, 100, 80) == (None, [])
+
+
+def test_compose_front_crops_equals_full_composition():
+    rng = np.random.default_rng(4)
+    full = np.zeros((4, 20, 30), np.float32)
+    crops = []
+    for i in range(4):
+        x0, y0 = rng.integers(0, 20), rng.integers(0, 12)
+        d = (rng.random((8, 10)) * (rng.random((8, 10)) > 0.3)).astype(np.float32)
+        d[0, 0] = 0.5  # exact ties between instances
+        full[i, y0:y0 + 8, x0:x0 + 10] = d
+        crops.append((d, int(x0), int(y0)))
+    crops.append(None)
+    full = np.concatenate([full, np.zeros((1, 20, 30), np.float32)])
+    a = annotate.compose_front(full)
+    b = annotate.compose_front_crops(crops, 30, 20)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
 
 
 def test_compose_front_nearest_wins_and_ties_go_to_lower_index():

@@ -72,6 +72,15 @@ def test_masks_and_depth_match_independent_ray_caster(rasterizer, scene):
     assert np.median(np.abs(scene["room_depth"][hit] - room_d[hit])) <= RASTER_DEPTH_MEDIAN_M
 
 
+def test_renders_reuse_compiled_shader_programs(rasterizer, scene):
+    """pyrender's program cache misses on every OSMesa render unless fixed (a leak and most of the cost)."""
+    _render(rasterizer, scene)
+    sizes = [len(v.renderer._renderer._program_cache._program_cache) for v in rasterizer._views.values()]
+    for _ in range(3):
+        _render(rasterizer, scene)
+    assert [len(v.renderer._renderer._program_cache._program_cache) for v in rasterizer._views.values()] == sizes
+
+
 def test_truncated_object_counts_its_outside_pixels_like_bop(rasterizer, scene):
     res = _render(rasterizer, scene)
     i = 5  # cut by the left image border
