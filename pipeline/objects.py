@@ -153,7 +153,14 @@ def load_object_file(path: str | Path, *, obj_id: int, scale: float, unit_note: 
     F = np.asarray(m.faces, dtype=np.int32)
     if not np.all(np.isfinite(V)):
         raise InputError(f"{path}: object has non-finite vertex coordinates; repair the model")
-    N = np.asarray(m.vertex_normals, dtype=np.float32)
+    N = np.asarray(m.vertex_normals, dtype=np.float64)
+    n = np.linalg.norm(N, axis=1)
+    if np.any(np.abs(n - 1.0) > 1e-3):  # zero or unnormalised normals in the file: recompute those
+        calc = np.asarray(trimesh.Trimesh(V, F, process=False).vertex_normals, dtype=np.float64)
+        bad = n < 0.5
+        N = np.where(bad[:, None], calc, N / np.maximum(n, 1e-12)[:, None])
+        N[np.linalg.norm(N, axis=1) < 0.5] = (0.0, 0.0, 1.0)  # vertices used by no face: any unit normal
+    N = N.astype(np.float32)
     vc = uv = tex = None
     base = (0.8, 0.8, 0.8)
     metallic, roughness = 0.0, 0.5
