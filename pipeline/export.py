@@ -14,6 +14,8 @@ so a changed numbering redoes the affected images instead of mixing them up.
 
 Colour images come from ``RUN/composite/<scene>/drop<NNNN>/f<frame:06d>.png`` when the compositor
 wrote one; otherwise the real photo is exported (without the inserted objects) and a warning says so.
+Depth likewise comes from the compositor's ``f<frame:06d>_depth.npz``, else it is composed here: the
+objects' depth where they are visible, the real depth (or the room's rendered depth) elsewhere.
 """
 
 from __future__ import annotations
@@ -83,7 +85,13 @@ def _key(s: Slot) -> str:
 
 
 def composite_path(run_dir: Path, scene: str, drop: int, frame: int) -> Path:
+    """Composite colour image written by the composite stage (same path as pipeline.composite.image_path)."""
     return run_dir / "composite" / scene / f"drop{drop:04d}" / f"f{frame:06d}.png"
+
+
+def composite_depth_path(run_dir: Path, scene: str, drop: int, frame: int) -> Path:
+    """Composite depth (NPZ key ``depth``, metres) written by the composite stage."""
+    return run_dir / "composite" / scene / f"drop{drop:04d}" / f"f{frame:06d}_depth.npz"
 
 
 def plan(ctx: StageContext) -> list[Item]:
@@ -122,11 +130,14 @@ def run_item(ctx: StageContext, item: Item) -> dict:
         rgb, source = read_color(scan, s.frame), "photo"
     if rgb.shape[:2] != (h, w):
         rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-    if scan.depth_paths[s.frame]:
-        background = resize_nearest(read_depth(scan, s.frame), w, h)
-    else:
-        background = load_npz(scene_depth_path(ctx.run_dir, s.scene, s.frame))["depth"]
-    depth = annotate.compose_depth(arr["labels"], arr["depth"], background)
+    comp_depth = composite_depth_path(ctx.run_dir, s.scene, s.drop, s.frame)
+    depth = load_npz(comp_depth)["depth"] if comp_depth.is_file() else None
+    if depth is None or depth.shape != (h, w):
+        if scan.depth_paths[s.frame]:
+            background = resize_nearest(read_depth(scan, s.frame), w, h)
+        else:
+            background = load_npz(scene_depth_path(ctx.run_dir, s.scene, s.frame))["depth"]
+        depth = annotate.compose_depth(arr["labels"], arr["depth"], background)
     sd = scene_dir(ctx.run_dir, s.bop_scene)
     export_bop.write_image_files(sd, s.im_id, rgb=rgb, depth_m=depth, amodal=arr["amodal"], labels=arr["labels"],
                                  ext=cfg.image_format, depth_scale=cfg.depth_scale, jpeg_quality=cfg.jpeg_quality)

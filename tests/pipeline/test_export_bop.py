@@ -227,3 +227,31 @@ print(json.dumps({{'n_im': len(gt), 'n_gt': len(gt[0]), 't': gt[0][0]['cam_t_m2c
     r = json.loads(out.stdout.strip().splitlines()[-1])
     assert r["n_im"] == 6 and r["n_gt"] == 7 and r["visib"] == r["px"]
     assert r["pts"] == len(run["library"][0].vertices)
+
+
+def test_export_takes_rgb_and_depth_from_the_compositor(run):
+    rd, cfg = run["run_dir"], run["cfg"]
+    ctx = export.StageContext(run_dir=rd, cfg=cfg, stage="export")
+    items = export.plan(ctx)
+    item = next(it for it in items if it.data["drop"] == 1 and it.data["frame"] == 2)
+    sd = run["root"] / "train_pbr" / "000000"
+    im = item.data["im_id"]
+    img = np.zeros((S.H_RUN, S.W_RUN, 3), np.uint8)
+    img[..., 1] = 200
+    cpath = export.composite_path(rd, "room", 1, 2)
+    dpath = export.composite_depth_path(rd, "room", 1, 2)
+    cpath.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(cpath), img[..., ::-1])
+    from pipeline.io import atomic_save_npz
+
+    atomic_save_npz(dpath, depth=np.full((S.H_RUN, S.W_RUN), 1.5, np.float32))
+    try:
+        assert export.run_item(ctx, item)["rgb_source"] == "composite"
+        rgb = cv2.imread(str(sd / "rgb" / f"{im:06d}.png"))[..., ::-1]
+        assert np.array_equal(rgb, img)
+        d = cv2.imread(str(sd / "depth" / f"{im:06d}.png"), cv2.IMREAD_UNCHANGED)
+        assert np.all(d == round(1500 / cfg.export.depth_scale))
+    finally:
+        cpath.unlink()
+        dpath.unlink()
+        export.run_item(ctx, item)
