@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import logging
 import math
 import platform
@@ -194,6 +195,12 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="progress bars on stderr (default: the config's run.progress)")
 
 
+def _add_poses(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--poses", type=Path, default=None, metavar="POSES.json",
+                   help="render these object poses instead of the simulated drops (same as "
+                        "--set raster.poses=POSES.json; schema in pipeline/raster.py)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="scansynth",
@@ -209,6 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, type=Path, help="run folder to create or resume")
     p.add_argument("--from", dest="from_stage", choices=STAGE_ORDER, help="first stage to run")
     p.add_argument("--to", dest="to_stage", choices=STAGE_ORDER, help="last stage to run")
+    _add_poses(p)
     _common(p)
 
     for name in STAGE_ORDER:
@@ -216,6 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("run_dir", type=Path, help="run folder")
         p.add_argument("--config", default=None,
                        help="config file, to start a new run folder with this stage")
+        if name == "raster":
+            _add_poses(p)
         _common(p)
 
     for name, (module, help_text) in EXTRA_COMMANDS.items():
@@ -249,6 +259,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.command in EXTRA_COMMANDS:
             module = importlib.import_module(EXTRA_COMMANDS[args.command][0])
             return int(module.run(args))
+        if getattr(args, "poses", None) is not None:
+            args.overrides = [*args.overrides, f"raster.poses={json.dumps(str(args.poses.resolve()))}"]
         if args.command == "run":
             cfg = load_config(args.config, args.overrides)
             run_dir = args.out.resolve()
