@@ -10,7 +10,9 @@ them (bop_toolkit ``scripts/calc_gt_info.py``):
 - ``px_count_visib``: pixels where the object is the nearest surface (of objects, room and real depth);
 - ``visib_fract = px_count_visib / px_count_all`` (0 when ``px_count_all`` is 0);
 - ``bbox_obj``: ``[x, y, w, h]`` of the whole silhouette, not clipped to the image; ``bbox_visib``:
-  of the visible pixels; both ``[-1, -1, -1, -1]`` when nothing is visible.
+  of the visible pixels; both ``[-1, -1, -1, -1]`` when nothing is visible. Here ``w, h`` are pixel
+  extents (COCO's convention, ``last - first + 1``); the BOP writer converts to bop_toolkit's
+  ``last - first`` (:func:`pipeline.export_bop.bop_box`).
 
 Pixel centres are at integer coordinates (OpenCV): pixel ``(r, c)`` samples ``u = c, v = r``.
 """

@@ -174,9 +174,21 @@ def scene_gt_entries(instances: list[dict]) -> list[dict]:
             for a in instances]
 
 
+def bop_box(box) -> list[int]:
+    """A raster box ``[x, y, w, h]`` (w, h = pixel extent, COCO style) as bop_toolkit writes boxes.
+
+    bop_toolkit's ``misc.calc_2d_bbox`` (used by ``calc_gt_info.py``) gives ``w = x_max - x_min``, one
+    less than the pixel extent; ``[-1, -1, -1, -1]`` (nothing visible) stays as it is.
+    """
+    x, y, w, h = (int(v) for v in box)
+    if w < 0:
+        return [x, y, w, h]
+    return [x, y, w - 1, h - 1]
+
+
 def scene_gt_info_entries(instances: list[dict]) -> list[dict]:
-    """``scene_gt_info.json`` entries of an image from raster annotations."""
-    return [{"bbox_obj": [int(x) for x in a["bbox_obj"]], "bbox_visib": [int(x) for x in a["bbox_visib"]],
+    """``scene_gt_info.json`` entries of an image from raster annotations (boxes as :func:`bop_box`)."""
+    return [{"bbox_obj": bop_box(a["bbox_obj"]), "bbox_visib": bop_box(a["bbox_visib"]),
              "px_count_all": int(a["px_count_all"]), "px_count_valid": int(a["px_count_valid"]),
              "px_count_visib": int(a["px_count_visib"]), "visib_fract": _r(a["visib_fract"])}
             for a in instances]

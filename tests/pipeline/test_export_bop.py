@@ -89,6 +89,11 @@ def test_bop_layout_and_json_files(run):
         m = cv2.imread(str(sd / "mask_visib" / f"000001_{gt_id:06d}.png"), cv2.IMREAD_UNCHANGED)
         assert m.dtype == np.uint8 and set(np.unique(m)) <= {0, 255}
         assert int((m > 0).sum()) == e["px_count_visib"]
+        if e["px_count_visib"] > 0:  # bop_toolkit's calc_2d_bbox: [x_min, y_min, x_max - x_min, y_max - y_min]
+            ys, xs = np.nonzero(m)
+            assert e["bbox_visib"] == [xs.min(), ys.min(), xs.max() - xs.min(), ys.max() - ys.min()]
+        else:
+            assert e["bbox_visib"] == [-1, -1, -1, -1]
 
 
 def test_depth_png_units(run):
