@@ -20,8 +20,8 @@ _LOCATIONS: dict[str, str] = {
     "prep": "placeholder:issue 5/7 (mesh preparation for physics and tracing)",
     "simulate": "placeholder:issue 7 (physics)",
     "raster": "pipeline.raster:STAGE",
-    "trace": "placeholder:issue 9 (path tracer)",
-    "composite": "placeholder:issue 10 (compositor)",
+    "trace": "pipeline.trace.stage:STAGE",
+    "composite": "pipeline.composite:STAGE",
     "export": "pipeline.export:STAGE",
 }
 
