@@ -97,10 +97,18 @@ def room_mesh_for(scan: Scan, cfg: Config) -> tuple[np.ndarray, np.ndarray, np.n
     src = cfg.scan.mesh or scan.mesh_path
     cams = scan.T_c2w[:, :3, 3]
     if src:
-        V, F, C = load_mesh_file(src)
-        check_mesh_covers_cameras(V, cams, src)
-        V, F, C = canonical_order(V, F, C)
-        return V, F, C, f"converted from {src}"
+        try:
+            V, F, C = load_mesh_file(src)
+        except InputError as e:
+            # transforms.json's ply_file_path is often a point cloud: reconstruct instead when possible
+            optional = not cfg.scan.mesh and scan.meta.get("mesh_may_be_point_cloud")
+            if not (optional and "no triangle faces" in str(e) and any(scan.depth_paths)):
+                raise
+            log.info("%s is not a triangle mesh; reconstructing from depth", src)
+        else:
+            check_mesh_covers_cameras(V, cams, src)
+            V, F, C = canonical_order(V, F, C)
+            return V, F, C, f"converted from {src}"
     if not any(scan.depth_paths):
         raise InputError(f"{scan.root}: the scan has no mesh and no depth maps to reconstruct one from; "
                          f"set scan.mesh to the room mesh file (metres, same world frame as the poses)")

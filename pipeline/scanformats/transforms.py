@@ -6,7 +6,11 @@ camera-to-world with **OpenGL camera axes**: x right, y up, z backwards), option
 ``frames[*].depth_file_path`` (uint16 PNG, ``depth_unit_scale_factor`` metres per unit, default 0.001,
 or ``.npy`` float metres) and optional distortion ``k1 k2 p1 p2`` (must be zero: images are used as
 pinhole). Paths are relative to the JSON file's folder. The room mesh comes from ``scan.mesh`` in the
-config, else it is reconstructed from the depth maps.
+config, else from ``ply_file_path`` when that file is a triangle mesh (nerfstudio often points it at a
+point cloud: then it is ignored), else it is reconstructed from the depth maps.
+
+Pixel convention: nerfstudio (like COLMAP) puts pixel ``i``'s centre at ``i + 0.5``, OpenCV at ``i``;
+so ``K[0, 2] = cx - 0.5`` and ``K[1, 2] = cy - 0.5`` (a centred ``cx = w / 2`` becomes ``(w - 1) / 2``).
 
 Poses are converted to OpenCV axes by flipping the camera's y and z axes:
 ``T_cv = T_gl @ diag(1, -1, -1, 1)``. Depth maps are taken as rendered/registered from the colour
@@ -60,8 +64,8 @@ def _intrinsics(d: dict, base: dict, jpath: Path) -> tuple[np.ndarray, int, int]
         raise InputError(f"{jpath}: intrinsics missing: add 'fl_x', 'fl_y', 'cx', 'cy' (pixels) to "
                          f"transforms.json")
     cx, cy = get("cx"), get("cy")
-    cx = w / 2.0 if cx is None else cx
-    cy = h / 2.0 if cy is None else cy
+    cx = (w / 2.0 if cx is None else float(cx)) - 0.5  # pixel centres at i + 0.5 -> OpenCV's i
+    cy = (h / 2.0 if cy is None else float(cy)) - 0.5
     for k in ("k1", "k2", "k3", "p1", "p2"):
         if abs(float(get(k) or 0.0)) > 1e-9:
             raise InputError(f"{jpath}: distortion {k} = {get(k)} is not supported; undistort the images "
@@ -127,8 +131,15 @@ def read(root: Path) -> Scan:
         Kd[:, 1] *= hd / h
     meta = {"skipped": {"invalid_pose": n_invalid}, "transforms_file": str(jpath),
             "registration": "depth assumed rendered from the colour camera (same pose and K)"}
+    mesh = ""
+    if doc.get("ply_file_path"):
+        mp = root / str(doc["ply_file_path"])
+        if not mp.is_file():
+            raise InputError(f"{jpath}: ply_file_path {doc['ply_file_path']!r} does not exist; fix or remove it")
+        mesh = str(mp.resolve())
+        meta["mesh_may_be_point_cloud"] = True
     return Scan(name=root.name, root=str(root.resolve()), format=FORMAT,
                 frame_ids=np.asarray(ids, dtype=np.int64), color_paths=tuple(cpaths), depth_paths=tuple(dpaths),
                 width=w, height=h, K=np.stack(Ks), T_c2w=np.stack(T), depth_width=wd, depth_height=hd,
                 depth_K=Kd, depth_scale=1.0 if dpaths[0].endswith(".npy") else scale,
-                depth_registered=all(has_depth), up_w=np.zeros(3), mesh_path="", meta=meta)
+                depth_registered=all(has_depth), up_w=np.zeros(3), mesh_path=mesh, meta=meta)

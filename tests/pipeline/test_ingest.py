@@ -286,3 +286,19 @@ def test_real_sevenscenes_ingest_subset(shared_data, tmp_path):
     assert np.median(np.concatenate(errs)) < 0.03
     doc = json.loads((tmp_path / "ingest" / "7scenes-redkitchen" / "scan.json").read_text())
     assert doc["meta"]["registration"].startswith("assumed")
+
+
+def test_transforms_ply_file_path_mesh_or_point_cloud(tmp_path):
+    V, F, C = room_mesh()
+    write_transforms(tmp_path / "a", n=4)
+    doc = json.loads((tmp_path / "a" / "transforms.json").read_text())
+    doc["ply_file_path"] = "mesh.ply"
+    (tmp_path / "a" / "transforms.json").write_text(json.dumps(doc))
+    (tmp_path / "a" / "mesh.ply").write_bytes(ply_bytes(V, F, C))
+    res = run_stage(tmp_path / "run", {"scan": {"paths": [str(tmp_path / "a")]}, "ingest": TSDF})
+    assert res["a"]["mesh"].startswith("converted from") and res["a"]["mesh"].endswith("mesh.ply")
+    # nerfstudio's usual ply_file_path: a point cloud -> reconstructed from the depth maps instead
+    head = f"ply\nformat ascii 1.0\nelement vertex {len(V)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    (tmp_path / "a" / "mesh.ply").write_text(head + "\n".join(f"{x} {y} {z}" for x, y, z in V) + "\n")
+    res = run_stage(tmp_path / "run2", {"scan": {"paths": [str(tmp_path / "a")]}, "ingest": TSDF})
+    assert res["a"]["mesh"].startswith("TSDF")

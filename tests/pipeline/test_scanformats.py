@@ -187,7 +187,8 @@ def write_transforms(root: Path, n: int = 5, w: int = 64, h: int = 48, depth: bo
             write_png16(root / "depths" / f"frame_{k:05d}.png", z)
             fr["depth_file_path"] = f"depths/frame_{k:05d}.png"
         frames.append(fr)
-    doc = {"fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "w": w, "h": h,
+    # nerfstudio's pixel centres are at i + 0.5: its cx, cy are OpenCV's + 0.5
+    doc = {"fl_x": K[0, 0], "fl_y": K[1, 1], "cx": K[0, 2] + 0.5, "cy": K[1, 2] + 0.5, "w": w, "h": h,
            "camera_model": "OPENCV", "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0, "frames": frames}
     (root / "transforms.json").write_text(json.dumps(doc))
     return {"K": K, "T": Ts, "ids": np.arange(n)}
@@ -466,3 +467,43 @@ def test_multiple_sequences_need_one_folder_each(tmp_path):
     write_7scenes(tmp_path / "seq-02", n=2)
     with pytest.raises(InputError, match="holds 2 sequences.*one sequence folder"):
         read_scan(tmp_path, "7scenes")
+
+
+# ---------------------------------------------------------------------------------------------------
+# Scans written by the project's synthetic scan generator (issue 4)
+# ---------------------------------------------------------------------------------------------------
+
+@pytest.mark.slow
+@pytest.mark.parametrize("layout", sorted(WRITERS))
+def test_round_trip_synthscan_layouts(tmp_path, layout):
+    """Each layout written by pipeline.synthscan gives back its true intrinsics, poses and frame count."""
+    synth = pytest.importorskip("pipeline.synthscan")
+    import warnings
+
+    from pipeline.io import load_npz, read_json
+
+    out = Path(synth.make_scan(tmp_path / layout, layout=layout, seed=2, width=96, height=72, frames=6))
+    truth = load_npz(out / "ground_truth" / "cameras.npz")
+    doc = read_json(out / "ground_truth" / "scan.json")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IngestWarning)  # a generated lost-tracking frame is skipped
+        s = read_scan(out)
+    valid = truth["pose_valid"].astype(bool)
+    assert s.num_frames == int(valid.sum())
+    np.testing.assert_array_equal(s.frame_ids, truth["frame_ids"][valid])
+    np.testing.assert_allclose(s.K, np.broadcast_to(truth["K"], s.K.shape), atol=1e-6)
+    np.testing.assert_allclose(s.T_c2w, truth["T_c2w"][valid], atol=1e-6)
+    assert (s.width, s.height) == (doc["width"], doc["height"])
+    d = read_depth(s, 0)
+    assert d.shape == (s.height, s.width) and np.median(d[d > 0]) > 0.3
+    # the up direction: 7-Scenes from gravity-direction.txt, the others from their mesh's floor
+    up_true = np.asarray(doc["up_w"], dtype=np.float64)
+    if s.mesh_path:
+        from pipeline.reconstruct import floor_up
+        from pipeline.scanformats.mesh import load_mesh_file
+
+        V, F, _ = load_mesh_file(s.mesh_path)
+        up, _ = floor_up(V, F, s.T_c2w)
+    else:
+        up = s.up_w
+    assert np.degrees(np.arccos(np.clip(up @ up_true, -1, 1))) < 1.0
