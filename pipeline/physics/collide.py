@@ -131,7 +131,17 @@ def _select(d: np.ndarray, pts: np.ndarray, k: int, patch: float) -> np.ndarray:
         chosen.append(nxt)
         mind = np.minimum(mind, np.linalg.norm(pts - pts[np.arange(G), nxt][:, None, :], axis=2))
     idx = np.stack(chosen, axis=1)
-    # mark repeats of the first index as unused by pointing them at an inf slot when there is one
+    # slots the patch could not fill take the next deepest points (speculative cover of the rest)
+    dup = np.zeros_like(idx, bool)
+    dup[:, 1:] = idx[:, 1:] == idx[:, :1]
+    rows = np.flatnonzero(dup.any(axis=1))
+    if len(rows):
+        order = np.argsort(d[rows], axis=1)[:, :2 * idx.shape[1]]
+        for r, row in enumerate(rows):
+            free = [v for v in order[r] if v not in set(idx[row])]
+            slots = np.flatnonzero(dup[row])
+            n = min(len(slots), len(free))
+            idx[row, slots[:n]] = free[:n]
     return idx
 
 
@@ -155,7 +165,7 @@ def collide(model: Model, state: State) -> Contacts:
     if B == 0:
         return empty_contacts()
     k = model.opt.contacts_per_pair
-    patch = model.opt.margin
+    patch = 1e-3   # m: points this close to the deepest one form the touching patch
     R = quat_to_mat(state.quat)
     Wv = world_vertices(model, R, state.pos)                        # (B, V, 3)
     V = Wv.shape[1]
