@@ -24,7 +24,8 @@ import numpy as np
 from pipeline.trace import bsdf
 from pipeline.trace.intersect import Hits, offset_origins
 from pipeline.trace.lights import LUMINANCE, sample_area_lights
-from pipeline.trace.sampling import cosine_hemisphere, power_heuristic, to_local, to_world
+from pipeline.trace.sampling import (cosine_hemisphere, frame_to_local, frame_to_world, local_frame,
+                                     power_heuristic, to_world)
 from pipeline.trace.scene import TraceScene
 
 log = logging.getLogger(__name__)
@@ -128,9 +129,8 @@ def interact(scene: TraceScene, hits: Hits, dirs: np.ndarray) -> Surface:
 
 def material(scene: TraceScene, s: Surface) -> bsdf.Material:
     """The BSDF parameters at surface points (room points: Lambert with their albedo)."""
-    return bsdf.Material(base_color=s.albedo.astype(np.float64), metallic=scene.metallic[s.inst].astype(np.float64),
-                         roughness=scene.roughness[s.inst].astype(np.float64),
-                         specular=scene.specular[s.inst].astype(np.float64))
+    return bsdf.Material(base_color=s.albedo, metallic=scene.metallic[s.inst],
+                         roughness=scene.roughness[s.inst], specular=scene.specular[s.inst])
 
 
 def take(s: Surface, idx: np.ndarray) -> Surface:
@@ -166,60 +166,68 @@ def _scatter(scene: TraceScene, s: Surface, wo: np.ndarray, beta: np.ndarray, rn
     Returns
     -------
     L_direct : (R, 3) radiance reaching the path start through the explicit lights, already x beta
-    wi : (R, 3) sampled world directions
+    wi : (R, 3) float32 sampled world directions
     weight : (R, 3) ``f cos / pdf`` (0 where the sample is invalid)
     pdf : (R,) solid-angle pdf of ``wi`` (for MIS on emitters hit next)
     """
     n = s.p.shape[0]
-    mat = material(scene, s)
-    wo_l = to_local(wo.astype(np.float64), s.ns.astype(np.float64))
-    L = np.zeros((n, 3))
+    frame = local_frame(s.ns)
+    wo_l = frame_to_local(wo, frame)
+    lobes = bsdf.prepare(material(scene, s), wo_l[:, 2])
+    L = np.zeros((n, 3), np.float32)
     al = scene.area_lights
     if al.count and n:
         u = rng.random((3, n))
         tri, b1, b2, pA = sample_area_lights(al, scene.vertices, scene.faces, u[0], u[1], u[2])
         f = scene.faces[tri]
-        V = scene.vertices.astype(np.float64)
+        V = scene.vertices
         q0, q1, q2 = V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]
-        b0 = (1.0 - b1 - b2)[:, None]
-        lp = b0 * q0 + b1[:, None] * q1 + b2[:, None] * q2
+        b1 = b1.astype(np.float32)[:, None]
+        b2 = b2.astype(np.float32)[:, None]
+        b0 = 1 - b1 - b2
+        lp = b0 * q0 + b1 * q1 + b2 * q2
         ln = _unit(np.cross(q1 - q0, q2 - q0))
-        Le = b0 * scene.emission[f[:, 0]] + b1[:, None] * scene.emission[f[:, 1]] + b2[:, None] * scene.emission[f[:, 2]]
+        E = scene.emission
+        Le = b0 * E[f[:, 0]] + b1 * E[f[:, 1]] + b2 * E[f[:, 2]]
         dvec = lp - s.p
         dist = np.linalg.norm(dvec, axis=1)
         wl = dvec / np.maximum(dist, 1e-12)[:, None]
         cos_l = np.abs(_dot(wl, ln))
-        pdf_sa = pA * dist * dist / np.maximum(cos_l, 1e-12)
-        wl_l = to_local(wl, s.ns.astype(np.float64))
-        fc = bsdf.eval_f_cos(wo_l, wl_l, mat)
+        pdf_sa = pA * dist.astype(np.float64) ** 2 / np.maximum(cos_l, 1e-12)
+        wl_l = frame_to_local(wl, frame)
+        fc, pdf_b = bsdf.eval_pdf(lobes, wo_l, wl_l)
         ok = (_dot(wl, s.ng) > 0) & (cos_l > 1e-6) & (fc.max(axis=1) > 0)
         idx = np.flatnonzero(ok)
         if idx.size:
-            org = offset_origins(s.p[idx], s.ng[idx], wl[idx].astype(np.float32), eps)
-            occ = scene.intersector.occluded(org, wl[idx], (dist[idx] - 2 * eps).astype(np.float32))
+            org = offset_origins(s.p[idx], s.ng[idx], wl[idx], eps)
+            occ = scene.intersector.occluded(org, wl[idx], dist[idx] - 2 * eps)
             counter.rays += idx.size
             vis = idx[~occ]
-            w = power_heuristic(pdf_sa[vis], bsdf.pdf(wo_l[vis], wl_l[vis], mat.take(vis)))
-            L[vis] += beta[vis] * fc[vis] * Le[vis] * (w / pdf_sa[vis])[:, None]
+            w = power_heuristic(pdf_sa[vis], pdf_b[vis])
+            L[vis] += beta[vis] * fc[vis] * Le[vis] * (w / pdf_sa[vis]).astype(np.float32)[:, None]
     pl = scene.point_lights
     for k in range(pl.count):
-        dvec = pl.position[k] - s.p
+        dvec = pl.position[k].astype(np.float32) - s.p
         dist = np.linalg.norm(dvec, axis=1)
         wl = dvec / np.maximum(dist, 1e-12)[:, None]
-        fc = bsdf.eval_f_cos(wo_l, to_local(wl, s.ns.astype(np.float64)), mat)
+        fc, _ = bsdf.eval_pdf(lobes, wo_l, frame_to_local(wl, frame))
         idx = np.flatnonzero((_dot(wl, s.ng) > 0) & (fc.max(axis=1) > 0))
         if idx.size:
-            org = offset_origins(s.p[idx], s.ng[idx], wl[idx].astype(np.float32), eps)
-            occ = scene.intersector.occluded(org, wl[idx], (dist[idx] - 2 * eps).astype(np.float32))
+            org = offset_origins(s.p[idx], s.ng[idx], wl[idx], eps)
+            occ = scene.intersector.occluded(org, wl[idx], dist[idx] - 2 * eps)
             counter.rays += idx.size
             vis = idx[~occ]
-            L[vis] += beta[vis] * fc[vis] * (pl.intensity[k] / (dist[vis] ** 2)[:, None])
-    u = rng.random((3, n))
-    wi_l, fc, pdf = bsdf.sample(wo_l, mat, u[0], u[1], u[2])
-    wi = to_world(wi_l, s.ns.astype(np.float64))
-    ok = (pdf > 0) & (_dot(wi, s.ng) > 0) & (wi_l[:, 2] > 0)
-    weight = np.where(ok[:, None], fc / np.where(ok, pdf, 1.0)[:, None], 0.0)
-    return L, wi, weight, pdf
+            L[vis] += beta[vis] * fc[vis] * (pl.intensity[k].astype(np.float32) / (dist[vis] ** 2)[:, None])
+    u = rng.random((3, n), dtype=np.float32)
+    wi_l, fc, pdf = bsdf.sample_prepared(lobes, wo_l, u[0], u[1], u[2])
+    wi = frame_to_world(wi_l, frame)
+    # a direction above the shading normal but under the facet (interpolated normals on a coarse mesh)
+    # is mirrored into the upper side rather than lost, so flat-shaded facets do not darken
+    dn = _dot(wi, s.ng)
+    wi = np.where((dn <= 0)[:, None], wi - (2 * dn)[:, None] * s.ng, wi)
+    ok = (pdf > 0) & (wi_l[:, 2] > 0)
+    weight = np.where(ok[:, None], fc / np.where(ok, pdf, 1)[:, None], 0).astype(np.float32)
+    return L, wi.astype(np.float32), weight, pdf
 
 
 def trace_samples(scene: TraceScene, camera: Camera, pixels: np.ndarray, settings: RenderSettings,
@@ -251,7 +259,7 @@ def trace_samples(scene: TraceScene, camera: Camera, pixels: np.ndarray, setting
         out["ao"][idx] = ambient_occlusion(scene.intersector, s.p, s.ng, s.ns, rng, samples=settings.ao_samples,
                                            max_distance=settings.ao_distance, eps=eps, counter=counter)
     L = out["L"]
-    beta = np.ones((idx.size, 3))
+    beta = np.ones((idx.size, 3), np.float32)
     wo = -d[idx]
     al = scene.area_lights
     for depth in range(settings.max_depth):
@@ -260,14 +268,14 @@ def trace_samples(scene: TraceScene, camera: Camera, pixels: np.ndarray, setting
         beta = beta * weight
         alive = beta.max(axis=1) > 0
         if depth + 1 >= settings.rr_depth:
-            q = np.clip(beta.max(axis=1), 0.05, 1.0)
-            alive &= rng.random(idx.size) < q
+            q = np.clip(beta.max(axis=1), np.float32(0.05), np.float32(1.0))
+            alive &= rng.random(idx.size, dtype=np.float32) < q
             beta = beta / q[:, None]
         k = np.flatnonzero(alive)
         if k.size == 0:
             break
         idx, beta, pdf = idx[k], beta[k], pdf[k]
-        wi = wi[k].astype(np.float32)
+        wi = wi[k]
         org = offset_origins(s.p[k], s.ng[k], wi, eps)
         h = scene.intersector.intersect(org, wi)
         counter.rays += k.size
@@ -324,9 +332,11 @@ def ambient_occlusion(intersector, p: np.ndarray, ng: np.ndarray, ns: np.ndarray
     if n == 0:
         return np.ones(0)
     pr = np.repeat(np.arange(n), samples)
-    u = rng.random((2, pr.size))
+    u = rng.random((2, pr.size), dtype=np.float32)
     dl, _ = cosine_hemisphere(u[0], u[1])
-    dw = to_world(dl, ns[pr].astype(np.float64)).astype(np.float32)
+    dw = to_world(dl, ns[pr])
+    dn = np.einsum("ij,ij->i", dw, ng[pr])
+    dw = np.where((dn < 0)[:, None], dw - (2 * dn)[:, None] * ng[pr], dw)  # see _scatter: no self-hits
     org = offset_origins(p[pr], ng[pr], dw, eps)
     occ = intersector.occluded(org, dw, np.float32(max_distance))
     if counter is not None:

@@ -27,6 +27,25 @@ def orthonormal_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return t, bb
 
 
+def local_frame(n: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(t, b, n)``: the frame of unit normals ``n (R, 3)``, to reuse across several rotations."""
+    t, b = orthonormal_basis(n)
+    return t, b, n
+
+
+def frame_to_world(local: np.ndarray, frame: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+    """Local directions (R, 3) to world in a :func:`local_frame`."""
+    t, b, n = frame
+    return local[:, :1] * t + local[:, 1:2] * b + local[:, 2:3] * n
+
+
+def frame_to_local(w: np.ndarray, frame: tuple[np.ndarray, np.ndarray, np.ndarray]) -> np.ndarray:
+    """World directions (R, 3) to the local coordinates of a :func:`local_frame`."""
+    t, b, n = frame
+    return np.stack([np.einsum("ij,ij->i", w, t), np.einsum("ij,ij->i", w, b),
+                     np.einsum("ij,ij->i", w, n)], axis=1)
+
+
 def to_world(local: np.ndarray, n: np.ndarray) -> np.ndarray:
     """Rotate local directions (+z = ``n``) to world: (R, 3) -> (R, 3)."""
     t, b = orthonormal_basis(n)

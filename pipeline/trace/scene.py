@@ -172,7 +172,11 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
         light_v = np.unique(rf[bright])
         E[light_v] *= np.float32(light_gain)
     light_mask = np.zeros(len(F), bool)
-    light_mask[:nrt] = bright if lighting == "scan" else False
+    if lighting == "scan" and bright.any():
+        # every triangle touching a boosted vertex carries boosted emission: sample them all explicitly
+        boosted = np.zeros(nrv, bool)
+        boosted[np.unique(rf[bright])] = True
+        light_mask[:nrt] = boosted[rf].any(axis=1)
     area = build_area_lights(V, F, E, light_mask)
     if lighting == "published" and nrv:
         pts = published_lights(rv, np.array([0.0, 0.0, 1.0]) if up is None else up, power=published_power)
