@@ -26,7 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     """Add make-scan's arguments to its sub-parser."""
     p.add_argument("out", type=Path, metavar="OUT", help="folder to write (new, empty, or an earlier make-scan output)")
     p.add_argument("--layout", required=True, choices=LAYOUT_CHOICES, help="scan layout to write")
-    p.add_argument("--seed", type=int, default=0, help="random seed (>= 0); same seed, same bytes (default 0)")
+    p.add_argument("--seed", type=int, required=True, help="random seed (>= 0); same seed, same bytes")
     p.add_argument("--size", type=_size, default=(640, 480), metavar="WxH",
                    help="colour image size (default 640x480; depth is smaller for scannet and 3rscan)")
     p.add_argument("--frames", type=int, default=50, help="number of frames (default 50)")

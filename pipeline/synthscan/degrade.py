@@ -22,9 +22,19 @@ EDGE_DROPOUT = 0.5            # probability that a pixel on an occlusion edge is
 SPECKLE_DROPOUT = 0.003       # probability of a random invalid pixel
 
 
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Linear [0, 1] -> sRGB-encoded [0, 1] (IEC 61966-2-1); same shape, float."""
+    x = np.clip(linear, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+SRGB_LUT_4096 = np.round(srgb_encode(np.linspace(0.0, 1.0, 4096)) * 255.0).astype(np.uint8)
+SRGB_LUT_4096.flags.writeable = False
+
+
 def encode_photo(linear: np.ndarray, rng: np.random.Generator, *, read_noise: float = 0.004,
                  shot_noise: float = 0.012) -> np.ndarray:
-    """Linear exposure units -> 8-bit photo with mild sensor noise (gamma 2.2, clipped at white).
+    """Linear exposure units -> 8-bit sRGB photo with mild sensor noise (clipped at white).
 
     Parameters
     ----------
@@ -41,9 +51,8 @@ def encode_photo(linear: np.ndarray, rng: np.random.Generator, *, read_noise: fl
     sigma = np.sqrt(np.float32(read_noise ** 2) + np.float32(shot_noise ** 2) * x)
     x += sigma * rng.standard_normal(x.shape, dtype=np.float32)
     np.clip(x, 0.0, 1.0, out=x)
-    # Gamma through a 4096-entry table (the same numbers as the formula to within 1/2 of an 8-bit step).
-    lut = np.round(np.power(np.linspace(0.0, 1.0, 4096), 1 / 2.2) * 255.0).astype(np.uint8)
-    return lut[(x * 4095.0 + 0.5).astype(np.int32)]
+    # sRGB encoding through a 4096-entry table (within half an 8-bit step of the formula).
+    return SRGB_LUT_4096[(x * 4095.0 + 0.5).astype(np.int32)]
 
 
 def disk_kernel(radius: float) -> np.ndarray:

@@ -320,6 +320,9 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
             "K": "OpenCV: pixel (u, v) centred at integer coordinates; transforms.json stores cx, cy + 0.5 "
                  "(nerfstudio centres pixels at i + 0.5)",
             "T_c2w": "camera-to-world, metres, OpenCV camera axes (x right, y down, z forward)",
+            "blur": "motion: the photo averages sub-frames rendered along the exposure path (strength = median "
+                    "image displacement over the exposure, px); defocus: disk PSF (strength = radius, px); "
+                    "depth maps are never blurred (taken at the frame's pose)",
             "invalid_pose": "pose_valid false: the layout's pose file says tracking was lost (ScanNet -inf); "
                             "ingest must skip these frames",
         },

@@ -36,7 +36,8 @@ class Light:
 
     name: str
     kind: str                 # "area" (ceiling panel) | "window"
-    corners: np.ndarray       # (4, 3) float64, metres, counter-clockwise seen from the lit side
+    corners: np.ndarray       # (4, 3) float64, metres, in order around the rectangle (corners[1] - corners[0] and
+                              # corners[3] - corners[0] are its edges)
     normal: np.ndarray        # (3,) float64, unit, emitting direction
     radiance: np.ndarray      # (3,) float64, linear RGB radiance, W / (m^2 sr) (relative units)
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.synthscan.degrade import srgb_encode
 from pipeline.synthscan.room import MeshData, Room, interpolate_on_quads, tessellate
 from pipeline.synthscan.textures import sample_bilinear
 
@@ -30,7 +31,7 @@ class ScanMesh:
 
     vertices: np.ndarray      # (V, 3) float64, metres, canonical frame
     faces: np.ndarray         # (T, 3) int32
-    colors: np.ndarray        # (V, 3) uint8 sRGB (gamma 2.2 encoded like the photos)
+    colors: np.ndarray        # (V, 3) uint8 sRGB, encoded like the photos
     face_part: np.ndarray     # (T,) int32, index into Room.parts
     thin_missing: dict        # thin part name -> fraction of its area removed
 
@@ -67,7 +68,7 @@ def make_scan_mesh(room: Room, light_mesh: MeshData, vertex_radiance: np.ndarray
             albedo[sel] = sample_bilinear(room.textures[m.id], fine.uv[sel])
     lin = albedo * light
     lin[emitter[mat]] = 1.0
-    colors_f = np.power(np.clip(lin, 0.0, 1.0), 1 / 2.2) * 255.0
+    colors_f = srgb_encode(lin) * 255.0
 
     # Weld coincident vertices (edges where quads meet), averaging their colours.
     first, inv = _weld(fine.vertices, WELD_TOL)
