@@ -40,14 +40,20 @@ Plain arrays in, plain arrays out; the stage that reads scans and writes files i
     Textureless frames (contrast below :data:`TEXTURELESS_STD` gray levels) cannot show blur and do not
     take part in the reference of their neighbours.
 
+    Camera speed from the poses (:func:`camera_speeds`) is written beside the scores but not used to
+    decide: motion blur depends on the exposure time, which scan formats do not record, and the pose
+    step between stored frames (every 10th frame in 7-Scenes) spans many exposures, so a fast step
+    does not mean a blurred frame.
+
 ``blur_effect``
     The no-reference metric of Crete et al. 2007 ("The blur effect: perception and estimation with a
     new no-reference perceptual blur metric"), as in ``skimage.measure.blur_effect`` (0 = sharp,
-    1 = blurred) but with OpenCV filters (~10x faster). It is content-normalised but, measured on the
+    1 = blurred, same values to 1e-5) but with OpenCV filters, measured on a native-resolution centre
+    crop (downscaling would shrink the blur). It is content-normalised but, on the benchmark's
     7-Scenes frames, separates blurred from sharp frames less well than ``relative`` (the Kinect v1
-    images are soft to begin with); it is used for the scan-level "everything is blurred" check: when
-    even the sharpest tenth of a scan's frames has a blur effect above a threshold, relative scores are
-    meaningless and the result says so.
+    images are soft to begin with); it serves the scan-level "everything is blurred" check: when even
+    the sharpest tenth of a scan's frames has a blur effect above ``select.scan_blur_max``, relative
+    scores cannot tell and the result says so.
 """
 
 from __future__ import annotations

@@ -33,6 +33,7 @@ from __future__ import annotations
 import logging
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 
@@ -169,8 +170,9 @@ def select_frames(cfg: SelectConfig, T_c2w: np.ndarray, *, features: blur.FrameF
                      all_blurred=all_blurred, warnings=tuple(warnings))
 
 
-def score_frames(images, *, method: str, thesis_edge_range: str = "0-255"):
-    """Per-frame scores of an iterable of RGB or gray uint8 frames for ``method``.
+def score_frames(images: Iterable[np.ndarray], *, method: str, thesis_edge_range: str = "0-255"
+                 ) -> tuple[blur.FrameFeatures, np.ndarray | None, np.ndarray | None, list[np.ndarray]]:
+    """Per-frame scores of an iterable of RGB (H, W, 3) or gray (H, W) uint8 frames, read once.
 
     Returns
     -------
