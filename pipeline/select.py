@@ -249,12 +249,17 @@ def contact_sheet(thumbs: list[np.ndarray], doc: dict, *, columns: int = 10) -> 
     """RGB uint8 grid of thumbnails, each framed by its reason's colour and labelled with its score.
 
     Labels: frame index, reason, and the deciding score (``relative`` for the relative method, the
-    Laplacian std for thesis).
+    Laplacian std for thesis). Scans of more than 300 frames get half-size cells.
     """
     import cv2
 
     if not thumbs:
         return np.full((40, 200, 3), 255, np.uint8)
+    small = len(thumbs) > 300        # long scans: half-size cells, twice the columns, shorter labels
+    if small:
+        columns *= 2
+        thumbs = [cv2.resize(t, (max(1, t.shape[1] // 2), max(1, t.shape[0] // 2)), interpolation=cv2.INTER_AREA)
+                  for t in thumbs]
     th = max(t.shape[0] for t in thumbs)
     tw = max(t.shape[1] for t in thumbs)
     pad, text_h = 4, 26
@@ -270,8 +275,8 @@ def contact_sheet(thumbs: list[np.ndarray], doc: dict, *, columns: int = 10) -> 
         sheet[y0:y0 + th + 2 * pad, x0:x0 + tw + 2 * pad] = colour
         sheet[y0 + pad:y0 + pad + t.shape[0], x0 + pad:x0 + pad + t.shape[1]] = t
         v = f["scores"].get(key)
-        label1 = f"#{f['index']} {'KEEP' if f['kept'] else f['reason']}"
-        label2 = f"{key[:8]} {v:.2f}" if v is not None else ""
+        label1 = f"#{f['index']} {'KEEP' if f['kept'] else f['reason'][:5 if small else 20]}"
+        label2 = "" if v is None else f"{v:.2f}" if small else f"{key[:8]} {v:.2f}"
         cv2.putText(sheet, label1, (x0 + 2, y0 + th + 2 * pad + 10), font, 0.33, (0, 0, 0), 1, cv2.LINE_AA)
         cv2.putText(sheet, label2, (x0 + 2, y0 + th + 2 * pad + 22), font, 0.33, (0, 0, 0), 1, cv2.LINE_AA)
     return sheet

@@ -384,3 +384,36 @@ def test_stage_on_an_ingested_scan(tmp_path):
     first = (out / "selection.json").read_bytes()
     STAGE.run_item(ctx, items[0])                         # idempotent: same bytes
     assert (out / "selection.json").read_bytes() == first
+
+
+@pytest.mark.shared_data
+def test_real_redkitchen_frames(shared_data):
+    """The 100 real 7-Scenes frames: relative drops the two visibly motion-blurred ones (47, 57: checked
+    by eye) and keeps the rest; the thesis rule keeps well under half (its mean rule); the literal 0..1
+    reading of its edge threshold keeps nothing."""
+    paths = sorted((shared_data / "scans" / "7scenes-redkitchen" / "frames").glob("frame-*.color.jpg"))
+    assert len(paths) == 100
+    images = [cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB) for p in paths]
+    T = np.stack([np.loadtxt(str(p).replace(".color.jpg", ".pose.txt")) for p in paths])
+    feats, te, tl, _ = score_frames(images, method="thesis")
+    cfg = SelectConfig()
+    rel = select_frames(cfg, T, features=feats)
+    assert [i for i, r in enumerate(rel.reasons) if r != KEPT] == [47, 57]
+    assert not rel.all_blurred
+    th = select_frames(dataclasses.replace(cfg, method="thesis"), T, thesis_edge=te, thesis_lap=tl)
+    assert 20 <= th.kept.size <= 50
+    lit = select_frames(dataclasses.replace(cfg, method="thesis"), T, thesis_edge=te / 255.0, thesis_lap=tl)
+    assert lit.kept.size == 0 and lit.all_blurred
+    div = select_frames(dataclasses.replace(cfg, min_angle_deg=10.0, min_baseline_m=0.1), T, features=feats)
+    assert 20 <= div.kept.size < 98 and set(div.kept.tolist()) <= set(rel.kept.tolist())
+
+
+def test_contact_sheet_of_a_long_scan_stays_small():
+    from pipeline.select import contact_sheet
+
+    n = 400
+    thumbs = [np.full((96, 128, 3), 100, np.uint8)] * n
+    doc = {"method": "relative", "frames": [{"index": i, "kept": i % 3 > 0, "reason": KEPT if i % 3 else BLURRED,
+                                             "scores": {"relative": 0.5}} for i in range(n)]}
+    sheet = contact_sheet(thumbs, doc)
+    assert sheet.dtype == np.uint8 and sheet.shape[1] == 20 * (64 + 8) and sheet.shape[0] == 20 * (48 + 8 + 26)
