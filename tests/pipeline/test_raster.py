@@ -48,6 +48,7 @@ def _render(rasterizer, sc, *, placement=None, room_depth=None, real=None, cfg=N
                         real_depth=lambda: real, cfg=cfg or RasterConfig(real_depth_fusion=real is not None))
 
 
+@pytest.mark.slow  # importing open3d dominates (several seconds on a loaded machine)
 def test_masks_and_depth_match_independent_ray_caster(rasterizer, scene):
     res = _render(rasterizer, scene)
     assert res.status == "ok", res.reason
@@ -95,6 +96,31 @@ def test_truncated_object_counts_its_outside_pixels_like_bop(rasterizer, scene):
     assert np.abs(np.subtract(a["bbox_obj"], box)).max() <= 1
     assert a["visib_fract"] == pytest.approx(a["px_count_visib"] / a["px_count_all"])
     assert a["bbox_visib"][0] == 0
+
+
+def test_object_larger_than_a_tile_and_cut_by_the_border(rasterizer, scene):
+    """A close-up box (window wider than the tile) cut by the image border: the image-sized path."""
+    from pipeline.raster import TILE
+
+    obj = S.make_object(2, "box")
+    keys = ensure_objects(rasterizer, [obj])
+    K = scene["K"]
+    R = S.rot((0, 1, 0), 0.3)
+    pl = Placement(scene="s", drop=0, obj_ids=np.array([2], np.int32), R_m2w=R[None],
+                   t_m2w=np.array([[0.05, 0.02, 0.2]]), at_rest=np.ones(1, bool), max_penetration=0.0,
+                   verdict="accepted")
+    res = render_frame(rasterizer, K=K, T_c2w=np.eye(4), width=W, height=H, placement=pl, mesh_keys=keys,
+                       scene_depth=lambda: np.zeros((H, W), np.float32), real_depth=lambda: None,
+                       cfg=RasterConfig())
+    a = res.instances[0]
+    v = obj.vertices @ R.T + pl.t_m2w[0]
+    x0, y0, x1, y1 = annotate.canvas(W, H)
+    _, alone = S.raycast([(v, obj.faces)], K, np.eye(4), x1 - x0, y1 - y0, x0, y0)
+    sil = alone == 0
+    assert a["bbox_obj"][2] > TILE  # wider than a tile
+    assert a["px_count_all"] > a["px_count_visib"] > 0  # cut by the border
+    assert abs(a["px_count_all"] - int(sil.sum())) <= 0.002 * sil.sum()
+    assert S.iou(res.amodal[0], sil[H:2 * H, W:2 * W]) >= RASTER_MASK_IOU_MIN
 
 
 def test_sphere_silhouette_area_is_analytic(rasterizer):
