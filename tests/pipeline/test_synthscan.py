@@ -349,6 +349,18 @@ def test_refuses_foreign_non_empty_folder(tmp_path):
     assert (tmp_path / "mine.txt").read_text() == "keep me"
 
 
+def test_output_path_that_is_a_file_or_a_broken_manifest(tmp_path):
+    f = tmp_path / "file"
+    f.write_text("x")
+    with pytest.raises(UserError, match="is a file"):
+        make_scan(f, layout="7scenes", seed=0, width=64, height=48, frames=2)
+    broken = tmp_path / "broken"
+    (broken / GT_DIR).mkdir(parents=True)
+    (broken / GT_DIR / "scan.json").write_text("{not json")
+    with pytest.raises(UserError, match="unreadable"):
+        make_scan(broken, layout="7scenes", seed=0, width=64, height=48, frames=2)
+
+
 @pytest.mark.parametrize("kwargs, match", [
     ({"layout": "kinect"}, "layout"),
     ({"seed": -1}, "seed"),
@@ -390,6 +402,11 @@ def test_cli_make_scan_and_contact_sheet(tmp_path, capsys):
     rc = main(["make-scan", str(tmp_path / "t"), "--layout", "7scenes", "--seed", "0", "--frames", "0"])
     assert rc == 2
     assert "--frames 0" in capsys.readouterr().err
+    rc = main(["make-scan", str(tmp_path / "u"), "--layout", "7scenes", "--seed", "0", "--frames", "2",
+               "--contact-sheet", str(tmp_path / "sheet.jpg")])
+    assert rc == 2
+    assert "contact sheet is a PNG" in capsys.readouterr().err
+    assert not (tmp_path / "u").exists()
 
 
 # ---------------------------------------------------------------------------------------------------
