@@ -137,6 +137,10 @@ class PrepConfig:
 
     room_max_error: float = option(0.005, "largest deviation allowed when simplifying the room, metres",
                                    min=0.0)
+    room_spacing: float = option(0.02, "grid spacing of the room's distance field for physics, metres",
+                                 min=0.0, min_exclusive=True)
+    density: float = option(700.0, "density given to every object for its mass, kg/m^3",
+                            min=0.0, min_exclusive=True)
 
 
 @dataclass(frozen=True)
@@ -147,6 +151,14 @@ class SimulateConfig:
     objects_per_drop: int = option(5, "objects spawned per drop", min=1)
     timestep: float = option(0.02, "simulation step, seconds", min=0.0, min_exclusive=True)
     max_time: float = option(40.0, "simulated time limit per drop, seconds", min=0.0, min_exclusive=True)
+    repeat_objects: bool = option(True, "sample the library with repetition (false: distinct objects)")
+    p_velocity: float = option(0.0, "probability that an object gets a random initial velocity and spin",
+                               min=0.0, max=1.0)
+    friction: float = option(0.5, "Coulomb friction coefficient of every contact", min=0.0)
+    room_thickness: float = option(0.01, "half-thickness given to the scan's paper-thin surfaces, metres",
+                                   min=0.0, min_exclusive=True)
+    max_penetration: float = option(0.01, "reject drops whose final penetration is deeper, metres",
+                                    min=0.0, min_exclusive=True)
 
 
 @dataclass(frozen=True)

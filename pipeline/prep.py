@@ -1,0 +1,111 @@
+"""The prep stage: collision proxies for physics and a traceable room mesh, made with meshprep.
+
+Items: ``<scene>/room`` per scene and ``objects`` once. Outputs:
+
+- ``RUN/prep/<scene>/room_proxy.npz``: meshprep's room distance grid (``origin``, ``spacing``,
+  ``udf``; ``sdf``/``sdf_valid`` where the cameras make a sign reliable);
+- ``RUN/prep/<scene>/room_trace.ply``: the room simplified within ``prep.room_max_error``;
+- ``RUN/prep/objects/obj_<id>.npz``: meshprep's object proxy (hull, parts, samples, ``mass``, ``com``,
+  ``inertia`` at ``prep.density``). An object that meshprep cannot close falls back to the mass
+  properties of its convex hull (flagged ``fallback_hull = 1`` in the NPZ and logged).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import UserError
+from pipeline.io import atomic_save_npz, load_npz
+from pipeline.runner import Item, Stage, StageContext
+
+log = logging.getLogger(__name__)
+
+
+def room_proxy_path(run_dir: str | Path, scene: str) -> Path:
+    return Path(run_dir) / "prep" / scene / "room_proxy.npz"
+
+
+def object_proxy_path(run_dir: str | Path, obj_id: int) -> Path:
+    return Path(run_dir) / "prep" / "objects" / f"obj_{obj_id:06d}.npz"
+
+
+def load_room_proxy(run_dir: str | Path, scene: str) -> dict[str, np.ndarray]:
+    """The room proxy NPZ of ``scene`` as a dict of arrays."""
+    p = room_proxy_path(run_dir, scene)
+    if not p.is_file():
+        raise UserError(f"{p}: room proxy is missing; run the 'prep' stage first")
+    return load_npz(p)
+
+
+def load_object_proxy(run_dir: str | Path, obj_id: int) -> dict[str, np.ndarray]:
+    """The object proxy NPZ of ``obj_id`` as a dict of arrays."""
+    p = object_proxy_path(run_dir, obj_id)
+    if not p.is_file():
+        raise UserError(f"{p}: object proxy is missing; run the 'prep' stage first")
+    return load_npz(p)
+
+
+def hull_proxy(vertices: np.ndarray, faces: np.ndarray, density: float) -> dict[str, np.ndarray]:
+    """Fallback object proxy from the convex hull (for meshes meshprep cannot close)."""
+    import trimesh
+
+    hull = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces)).convex_hull
+    mp = hull.mass_properties
+    return {"hull_vertices": np.asarray(hull.vertices, float), "hull_faces": np.asarray(hull.faces, np.int32),
+            "volume": np.float64(mp["volume"]), "mass": np.float64(mp["volume"] * density),
+            "density": np.float64(density), "com": np.asarray(mp["center_mass"], float),
+            "inertia": np.asarray(mp["inertia"], float) * density, "fallback_hull": np.int32(1)}
+
+
+def object_proxy(vertices: np.ndarray, faces: np.ndarray, density: float) -> dict[str, np.ndarray]:
+    """meshprep's object proxy of a mesh, or :func:`hull_proxy` when meshprep fails on it."""
+    from meshprep.errors import MeshprepError
+    from meshprep.proxy import object_proxy_arrays
+
+    try:
+        out = object_proxy_arrays(vertices, faces, density=density)
+        out["fallback_hull"] = np.int32(0)
+        return out
+    except (MeshprepError, ValueError, RuntimeError) as e:
+        log.warning("meshprep could not make a solid (%s); using the convex hull's mass properties", e)
+        return hull_proxy(vertices, faces, density)
+
+
+def plan(ctx: StageContext) -> list[Item]:
+    from pipeline.ingest import list_scenes
+
+    return [Item(key=f"{s}/room", data={"scene": s}) for s in list_scenes(ctx.run_dir)] + \
+        [Item(key="objects", data={})]
+
+
+def run_item(ctx: StageContext, item: Item) -> dict:
+    from pipeline.ingest import load_objects, load_room_mesh, load_scan
+
+    cfg = ctx.cfg.prep
+    if item.key == "objects":
+        out = {}
+        for obj in load_objects(ctx.run_dir):
+            pr = object_proxy(obj.vertices, obj.faces, cfg.density)
+            atomic_save_npz(object_proxy_path(ctx.run_dir, obj.obj_id), **pr)
+            out[str(obj.obj_id)] = {"mass": float(pr["mass"]), "fallback_hull": int(pr["fallback_hull"])}
+        return {"objects": out}
+    from meshprep.proxy import room_distance_grid
+    from meshprep.simplify import simplify
+
+    scene = item.data["scene"]
+    scan = load_scan(ctx.run_dir, scene)
+    v, f, _ = load_room_mesh(scan)
+    grid = room_distance_grid(v, f, spacing=cfg.room_spacing, cameras=scan.T_c2w[:, :3, 3], seed=0)
+    atomic_save_npz(room_proxy_path(ctx.run_dir, scene), **grid)
+    trace = ctx.stage_dir / scene / "room_trace.ply"
+    tmp = trace.with_name(f"room_trace.tmp-{os.getpid()}.ply")
+    rep = simplify(scan.mesh_path, tmp, max_error=cfg.room_max_error)
+    os.replace(tmp, trace)
+    return {"scene": scene, "grid": list(grid["udf"].shape), "trace_faces": rep.get("after", {}).get("faces")}
+
+
+STAGE = Stage("prep", plan, run_item)

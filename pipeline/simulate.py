@@ -1,0 +1,158 @@
+"""The simulate stage: drops of library objects into each room with our own physics (pipeline.physics).
+
+Items: one per (scene, drop), key ``<scene>/drop<NNNN>``. Each writes
+``RUN/simulate/<scene>/drop<NNNN>.json`` (a :class:`~pipeline.types.Placement` plus simulation facts);
+rejected drops are written too, with their verdict, and counted in ``RUN/simulate/summary.json``
+(downstream stages use accepted drops only).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import SimulateConfig
+from pipeline.errors import InputError, UserError
+from pipeline.io import atomic_write_json, read_json
+from pipeline.runner import Item, Stage, StageContext
+from pipeline.types import Placement
+
+log = logging.getLogger(__name__)
+
+
+def placement_path(run_dir: str | Path, scene: str, drop: int) -> Path:
+    return Path(run_dir) / "simulate" / scene / f"drop{drop:04d}.json"
+
+
+def placement_to_dict(p: Placement) -> dict:
+    """JSON-able dict of a placement (floats written with round-trip precision)."""
+    return {"scene": p.scene, "drop": int(p.drop), "obj_ids": np.asarray(p.obj_ids).astype(int).tolist(),
+            "R_m2w": np.asarray(p.R_m2w, float).tolist(), "t_m2w": np.asarray(p.t_m2w, float).tolist(),
+            "at_rest": np.asarray(p.at_rest, bool).tolist(), "max_penetration": float(p.max_penetration),
+            "verdict": p.verdict}
+
+
+def save_placement(path: str | Path, placement: Placement, *, extra: dict | None = None) -> Path:
+    """Write a placement as JSON, atomically (``extra`` adds keys, e.g. simulated seconds)."""
+    doc = placement_to_dict(placement)
+    if extra:
+        doc.update({f"sim_{k}": v for k, v in extra.items()})
+    return atomic_write_json(path, doc)
+
+
+def read_placement(path: str | Path) -> Placement:
+    """Read a placement JSON written by :func:`save_placement`."""
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: placement is missing; run the 'simulate' stage first")
+    d = read_json(path)
+    try:
+        n = len(d["obj_ids"])
+        p = Placement(scene=str(d["scene"]), drop=int(d["drop"]),
+                      obj_ids=np.asarray(d["obj_ids"], np.int32).reshape(n),
+                      R_m2w=np.asarray(d["R_m2w"], float).reshape(n, 3, 3),
+                      t_m2w=np.asarray(d["t_m2w"], float).reshape(n, 3),
+                      at_rest=np.asarray(d["at_rest"], bool).reshape(n),
+                      max_penetration=float(d["max_penetration"]), verdict=str(d["verdict"]))
+    except (KeyError, ValueError, TypeError) as e:
+        raise InputError(f"{path}: not a placement file ({e}); re-run the 'simulate' stage") from None
+    return p
+
+
+def load_placement(run_dir: str | Path, scene: str, drop: int) -> Placement:
+    """The placement of drop ``drop`` in ``scene`` (see :func:`save_placement`)."""
+    return read_placement(placement_path(run_dir, scene, drop))
+
+
+def body_of(proxy: dict[str, np.ndarray], friction: float):
+    """A physics body from an object proxy (meshprep keys: hull_vertices, mass, com, inertia)."""
+    from pipeline.physics import Body
+
+    return Body(vertices=np.asarray(proxy["hull_vertices"], float), mass=float(proxy["mass"]),
+                com=np.asarray(proxy["com"], float), inertia=np.asarray(proxy["inertia"], float),
+                friction=friction)
+
+
+def simulate(cfg: SimulateConfig, *, scene: str, drop: int, room: dict, up: np.ndarray,
+             proxies: dict[int, dict], rng: np.random.Generator) -> tuple[Placement, dict]:
+    """One drop: sample objects, spawn them above the room and simulate them to rest.
+
+    Parameters
+    ----------
+    cfg
+        The ``[simulate]`` table.
+    room
+        Room proxy (``origin``, ``spacing``, ``udf``).
+    up
+        (3,) world up vector of the scan.
+    proxies
+        ``{obj_id: object proxy}`` of the library.
+    rng
+        The drop's own generator.
+
+    Returns
+    -------
+    placement, facts (simulated seconds, steps)
+    """
+    from pipeline.physics.drop import DropSettings, simulate_drop
+
+    ids = np.array(sorted(proxies), np.int32)
+    n = cfg.objects_per_drop
+    if not cfg.repeat_objects and n > len(ids):
+        raise InputError(f"simulate.objects_per_drop = {n} distinct objects but the library has "
+                         f"{len(ids)}; set simulate.repeat_objects = true or lower objects_per_drop")
+    chosen = rng.choice(ids, size=n, replace=cfg.repeat_objects)
+    bodies = [body_of(proxies[int(i)], cfg.friction) for i in chosen]
+    st = DropSettings(timestep=cfg.timestep, max_time=cfg.max_time, p_velocity=cfg.p_velocity,
+                      friction=cfg.friction, room_thickness=cfg.room_thickness,
+                      max_penetration=cfg.max_penetration)
+    r = simulate_drop(bodies, room=room, up=up, settings=st, rng=rng)
+    pl = Placement(scene=scene, drop=drop, obj_ids=chosen.astype(np.int32), R_m2w=r.R_m2w, t_m2w=r.t_m2w,
+                   at_rest=r.at_rest, max_penetration=r.max_penetration, verdict=r.verdict)
+    return pl, {"seconds": round(r.sim_time, 6), "steps": r.steps}
+
+
+def plan(ctx: StageContext) -> list[Item]:
+    from pipeline.ingest import list_scenes
+
+    return [Item(key=f"{s}/drop{d:04d}", data={"scene": s, "drop": d})
+            for s in list_scenes(ctx.run_dir) for d in range(ctx.cfg.simulate.drops)]
+
+
+def run_item(ctx: StageContext, item: Item) -> dict:
+    from pipeline.ingest import load_objects, load_scan
+    from pipeline.prep import load_object_proxy, load_room_proxy
+
+    scene, drop = item.data["scene"], int(item.data["drop"])
+    scan = load_scan(ctx.run_dir, scene)
+    room = load_room_proxy(ctx.run_dir, scene)
+    proxies = {o.obj_id: load_object_proxy(ctx.run_dir, o.obj_id) for o in load_objects(ctx.run_dir)}
+    if not proxies:
+        raise InputError("the object library is empty; give objects.paths in the config")
+    pl, facts = simulate(ctx.cfg.simulate, scene=scene, drop=drop, room=room, up=scan.up_w,
+                         proxies=proxies, rng=ctx.rng(item))
+    save_placement(placement_path(ctx.run_dir, scene, drop), pl, extra=facts)
+    if pl.verdict != "accepted":
+        log.info("%s: %s", item.key, pl.verdict)
+    return {"verdict": pl.verdict, "max_penetration": pl.max_penetration,
+            "asleep": int(np.sum(pl.at_rest)), "objects": len(pl.obj_ids), **facts}
+
+
+def finish(ctx: StageContext, results: dict[str, dict]) -> None:
+    """Count accepted and rejected drops (by reason) in RUN/simulate/summary.json."""
+    counts: dict[str, int] = {}
+    for r in results.values():
+        counts[r["verdict"]] = counts.get(r["verdict"], 0) + 1
+    total = sum(counts.values())
+    atomic_write_json(ctx.stage_dir / "summary.json",
+                      {"drops": total, "verdicts": counts,
+                       "accepted_share": (counts.get("accepted", 0) / total) if total else 0.0})
+    rejected = total - counts.get("accepted", 0)
+    if rejected:
+        log.warning("simulate: %d of %d drops rejected (%s)", rejected, total,
+                    ", ".join(f"{k}: {v}" for k, v in sorted(counts.items()) if k != "accepted"))
+
+
+STAGE = Stage("simulate", plan, run_item, finish)
