@@ -48,7 +48,7 @@ log = logging.getLogger(__name__)
 
 _COVER_EPS = 1e-3        # coverage below this is "no object" (Monte Carlo coverage is k / spp)
 _FILL_RADIUS = 2         # pixels: window radius of the normalised-convolution colour fill
-_BLUR_CROP_MARGIN = 8    # pixels around the objects where the photo's blur and noise are measured
+_BLUR_CROP_MARGIN = 24   # pixels around the objects where the photo's blur is measured
 _NOISE_BAND = (2, 12)    # pixels: ring around the objects (inner, outer) where photo noise is measured
 _SHADOW_RATIO_MAX = 4.0  # shadow ratios above this are clamped (a few noisy rays off a bright object)
 
@@ -77,7 +77,7 @@ class Composite:
 
     image: np.ndarray      # (H, W, 3) uint8 RGB
     blur_sigma: float      # pixels, Gaussian blur applied to the object layer
-    photo_blur: float      # blur effect of the photo around the objects (0 sharp .. 1 blurred); NaN = not measured
+    photo_edge_sigma: float  # pixels, edge-width blur measure of the photo near the objects; NaN = not measured
     photo_noise: float     # gray levels (0..255), sensor noise measured in the photo around the objects
     noise_added: float     # gray levels, std of the noise added to fully covered object pixels
 
@@ -232,7 +232,9 @@ def composite_full(photo: np.ndarray, pbr: np.ndarray, coverage: np.ndarray, sha
     else:
         sr = np.ones(hw, np.float32)
 
-    def blend(sigma: float, sl: tuple[slice, slice] = (slice(None), slice(None))) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def blend(sigma: float, sl: tuple[slice, slice] = (slice(None), slice(None))
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # (linear composite, blurred alpha, blurred shadow ratio) of the window ``sl``
         lay, al, s = layer[sl], alpha[sl], sr[sl]
         if sigma > 0:
             lay, al = cl.gaussian_blur(lay, sigma), cl.gaussian_blur(al, sigma)
@@ -243,14 +245,15 @@ def composite_full(photo: np.ndarray, pbr: np.ndarray, coverage: np.ndarray, sha
 
     objects = alpha > 0
     box = _bbox(objects, _BLUR_CROP_MARGIN)
-    photo_blur = float("nan")
+    photo_edge = float("nan")
     if blur_sigma is None:
         if box is None:
             blur_sigma = 0.0
         else:
-            blur_sigma, photo_blur = cl.match_blur_sigma(
-                cv2.cvtColor(photo[box], cv2.COLOR_RGB2GRAY),
-                lambda s: cv2.cvtColor(cl.encode_u8(blend(s, box)[0]), cv2.COLOR_RGB2GRAY))
+            near = _dilate(alpha >= 0.5, 1)[box]   # the objects' own edges, not the photo's beside them
+            blur_sigma, photo_edge = cl.match_blur_sigma(
+                cv2.cvtColor(photo[box], cv2.COLOR_RGB2GRAY), ~_dilate(objects, 1)[box],
+                lambda s: cv2.cvtColor(cl.encode_u8(blend(s, box)[0]), cv2.COLOR_RGB2GRAY), near)
     out_lin, al, s = blend(float(blur_sigma))
     out = cl.linear_to_srgb(out_lin) * np.float32(255.0)
 
@@ -271,7 +274,7 @@ def composite_full(photo: np.ndarray, pbr: np.ndarray, coverage: np.ndarray, sha
     image = np.clip(np.round(out), 0, 255).astype(np.uint8)
     changed = (al > 0) | (s != 1.0)
     image = np.where(changed[..., None], image, photo)
-    return Composite(image=image, blur_sigma=float(blur_sigma), photo_blur=photo_blur,
+    return Composite(image=image, blur_sigma=float(blur_sigma), photo_edge_sigma=photo_edge,
                      photo_noise=float(noise_sigma), noise_added=float(noise_added))
 
 
@@ -368,7 +371,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
         image = res.image
         info = {"blur_sigma": res.blur_sigma, "photo_noise": round(res.photo_noise, 3),
                 "noise_added": round(res.noise_added, 3),
-                "photo_blur": None if np.isnan(res.photo_blur) else round(res.photo_blur, 4)}
+                "photo_edge_sigma": None if np.isnan(res.photo_edge_sigma) else round(res.photo_edge_sigma, 4)}
     real = resize_nearest(read_depth(scan, frame), w, h) if scan.depth_paths[frame] else None
     room = None
     sd = scene_depth_path(ctx.run_dir, scene, frame)

@@ -59,14 +59,30 @@ def _scene(sigma_photo: float) -> tuple[np.ndarray, np.ndarray]:
 @pytest.mark.parametrize("sigma_photo", [0.0, 1.0, 2.0])
 def test_match_blur_sigma_finds_the_photos_blur(sigma_photo):
     sharp, photo = _scene(sigma_photo)
-    s, be = cl.match_blur_sigma(photo, lambda s: cl.gaussian_blur(sharp, s))
-    assert 0.0 <= be <= 1.0
+    s, measured = cl.match_blur_sigma(photo, None, lambda s: cl.gaussian_blur(sharp, s), None)
+    assert np.isfinite(measured)
     assert abs(s - sigma_photo) <= 0.3
 
 
-def test_match_blur_sigma_on_a_textureless_photo_is_zero():
-    s, be = cl.match_blur_sigma(np.full((40, 40), 90, np.uint8), lambda s: np.zeros((40, 40)))
-    assert s == 0.0 and np.isnan(be)
+def test_edge_blur_sigma_grows_with_blur_and_ignores_contrast():
+    yy, xx = np.mgrid[0:80, 0:100].astype(np.float64)
+    cov = np.zeros((80, 100))
+    sub = (np.arange(8) + 0.5) / 8 - 0.5
+    for dy in sub:
+        for dx in sub:
+            cov += ((xx + dx - 50) ** 2 + (yy + dy - 40) ** 2 <= 25 ** 2)
+    cov /= 64
+    vals = [cl.edge_blur_sigma(cl.gaussian_blur((60 + 140 * cov).astype(np.float32), s))[0]
+            for s in (0.0, 0.5, 1.0, 1.5, 2.0)]
+    assert np.all(np.diff(vals) > 0)
+    low = cl.edge_blur_sigma(cl.gaussian_blur((60 + 70 * cov).astype(np.float32), 1.0))[0]
+    assert low == pytest.approx(vals[2], abs=0.05)
+
+
+def test_match_blur_sigma_without_edges_is_zero():
+    s, measured = cl.match_blur_sigma(np.full((40, 40), 90, np.uint8), None, lambda s: np.zeros((40, 40)), None)
+    assert s == 0.0 and np.isnan(measured)
+    assert np.isnan(cl.edge_blur_sigma(np.zeros((2, 2)))[0])
 
 
 def test_gaussian_blur_keeps_constants_at_borders():
