@@ -96,9 +96,16 @@ def _cameras(n: int):
     return [Camera(K=K, T_c2w=look_at(e, (0.1, -0.05, 0.15)), width=W, height=H) for e in eyes[:n]]
 
 
+def _emission_at(scene, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(R, 3) emitted radiance interpolated at hits (barycentrics ``u``, ``v`` of vertices 1 and 2)."""
+    f = scene.faces[prim]
+    E = scene.emission
+    return (1.0 - u - v)[:, None] * E[f[:, 0]] + u[:, None] * E[f[:, 1]] + v[:, None] * E[f[:, 2]]
+
+
 def _room_radiance(room_scene, cam, ss: int = 4) -> np.ndarray:
     """Linear radiance of the room alone, ss x ss supersampled, (H, W, 3) float32 (clipped at 1 by the camera)."""
-    from pipeline.trace.pbr import interact, primary_rays
+    from pipeline.trace.pbr import primary_rays
 
     pix = np.arange(W * H)
     acc = np.zeros((W * H, 3))
@@ -108,8 +115,7 @@ def _room_radiance(room_scene, cam, ss: int = 4) -> np.ndarray:
             o, d = primary_rays(cam, pix, np.tile([jx, jy], (W * H, 1)))
             h = room_scene.intersector.intersect(o, d)
             ok = h.hit
-            surf = interact(room_scene, type(h)(t=h.t[ok], prim=h.prim[ok], u=h.u[ok], v=h.v[ok]), d[ok])
-            acc[ok] += surf.emission
+            acc[ok] += _emission_at(room_scene, h.prim[ok], h.u[ok], h.v[ok])
     return (acc / ss ** 2).reshape(H, W, 3).astype(np.float32)
 
 
@@ -381,7 +387,7 @@ SHEET_OBJECTS = (1, 5, 8, 9)   # LM-O ape, can, driller, duck
 
 def _place_on_surface(scene_room, cam, up: np.ndarray, model, rng) -> tuple[np.ndarray, np.ndarray] | None:
     """A pose putting ``model`` upright on a horizontal surface seen near the lower middle of the view."""
-    from pipeline.trace.pbr import interact, primary_rays
+    from pipeline.trace.pbr import primary_rays
 
     w, h = cam.width, cam.height
     xs = np.linspace(0.3 * w, 0.7 * w, 9)
@@ -393,9 +399,11 @@ def _place_on_surface(scene_room, cam, up: np.ndarray, model, rng) -> tuple[np.n
     ok = np.flatnonzero(hits.hit & (hits.t > 0.5) & (hits.t < 2.5))
     if ok.size == 0:
         return None
-    sub = type(hits)(t=hits.t[ok], prim=hits.prim[ok], u=hits.u[ok], v=hits.v[ok])
-    surf = interact(scene_room, sub, d[ok])
-    flat = np.flatnonzero(np.abs(surf.ng.astype(np.float64) @ up) > 0.93)
+    V, F = scene_room.vertices.astype(np.float64), scene_room.faces[hits.prim[ok]]
+    ng = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-20)
+    p_hit = o[ok] + hits.t[ok, None] * d[ok]
+    flat = np.flatnonzero(np.abs(ng @ up) > 0.93)
     if flat.size == 0:
         return None
     k = flat[rng.integers(flat.size)]
@@ -409,7 +417,7 @@ def _place_on_surface(scene_room, cam, up: np.ndarray, model, rng) -> tuple[np.n
     c, s = np.cos(yaw), np.sin(yaw)
     R = R0 @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
     v = np.asarray(model.vertices) @ R.T
-    t = surf.p[k].astype(np.float64) - z * float((v @ z).min()) + 0.002 * z
+    t = p_hit[k].astype(np.float64) - z * float((v @ z).min()) + 0.002 * z
     return R, t
 
 

@@ -334,17 +334,18 @@ def plan(ctx: StageContext) -> list[Item]:
 
 def run_item(ctx: StageContext, item: Item) -> dict:
     from pipeline.ingest import load_scan, read_color, read_depth
-    from pipeline.io import atomic_save_npz, atomic_write_image, load_npz
-    from pipeline.raster import frame_stem, load_frame, resize_nearest, scene_depth_path
+    from pipeline.io import atomic_save_npz, atomic_write_image, load_npz, read_json
+    from pipeline.raster import frame_stem, resize_nearest, scene_depth_path
     from pipeline.trace.stage import load_trace
 
     cfg = ctx.cfg.composite
     t0 = time.perf_counter()
     scene, drop, frame = item.data["scene"], int(item.data["drop"]), int(item.data["frame"])
     stem = frame_stem(ctx.run_dir, scene, drop, frame)
-    doc, arr = load_frame(stem)
-    if arr is None:
+    doc = read_json(stem.with_suffix(".json"))
+    if doc.get("status") != "ok" or not stem.with_suffix(".npz").is_file():
         raise InputError(f"{stem}.json: frame status is {doc.get('status')!r}, not ok; re-run raster")
+    arr = load_npz(stem.with_suffix(".npz"))
     labels = arr["labels"]
     h, w = labels.shape
     tr = load_trace(ctx.run_dir, scene, drop, frame)

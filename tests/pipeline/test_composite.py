@@ -367,3 +367,37 @@ def test_config_rejects_unknown_mode():
 
     with pytest.raises(ConfigError, match="mode"):
         build_config({"composite": {"mode": "magic"}})
+
+
+def test_stage_on_the_trace_stages_real_output(tmp_path):
+    """Trace stage -> composite stage on a tiny box room with a ball: the agreed names and shapes hold."""
+    import dataclasses
+
+    from pipeline.composite import STAGE, image_path
+    from pipeline.config import build_config
+    from pipeline.ingest import load_scan, save_scan
+    from pipeline.io import atomic_write_image
+    from pipeline.runner import StageContext
+    from pipeline.trace.stage import STAGE as TRACE
+    from tests.pipeline.test_trace_stage import _make_run as make_trace_run
+
+    run = tmp_path / "run"
+    make_trace_run(run)
+    scan = load_scan(run, "room")
+    photo = _photo(scan.height, scan.width)
+    atomic_write_image(run / "ingest/room/color0.png", photo)
+    save_scan(run / "ingest/room", dataclasses.replace(scan, color_paths=(str(run / "ingest/room/color0.png"),)))
+    cfg = build_config({"trace": {"spp": 4, "shadow_samples": 8}})
+    tctx = StageContext(run_dir=run, cfg=cfg, stage="trace")
+    TRACE.run_item(tctx, TRACE.plan(tctx)[0])
+    ctx = StageContext(run_dir=run, cfg=cfg, stage="composite")
+    res = STAGE.run_item(ctx, STAGE.plan(ctx)[0])
+    import cv2
+
+    img = cv2.imread(str(image_path(run, "room", 0, 0)), cv2.IMREAD_COLOR)[..., ::-1]
+    labels = np.load(run / "raster/room/drop0000/f000000.npz")["labels"]
+    assert img.shape == photo.shape and res["mode"] == "full"
+    assert (img[labels > 0] != photo[labels > 0]).any(axis=-1).mean() > 0.9   # the ball is in the image
+    far = np.ones(labels.shape, bool)
+    far[max(0, np.nonzero(labels)[0].min() - 8):, :] = False   # rows well above the ball and its shadow
+    assert np.array_equal(img[far], photo[far])
