@@ -115,8 +115,10 @@ class SelectConfig:
     method: str = option("relative", "blur scoring method: relative = detail against the frame's neighbours "
                          "(pipeline/blur.py), thesis = published Canny/Laplacian rule, none = keep all",
                          choices=("thesis", "none", "relative"))
-    min_angle_deg: float = option(0.0, "minimum viewing-angle change between kept frames, degrees", min=0.0)
-    min_baseline_m: float = option(0.0, "minimum camera travel between kept frames, metres", min=0.0)
+    min_angle_deg: float = option(10.0, "a view within this angle AND min_baseline_m of a kept one is a "
+                                  "near-duplicate and skipped, degrees; 0 = keep all", min=0.0)
+    min_baseline_m: float = option(0.1, "see min_angle_deg: camera travel below which views count as the same "
+                                   "spot, metres", min=0.0)
     max_frames: int = option(0, "keep at most this many frames per scan; 0 = no limit", min=0)
     window: int = option(5, "relative: neighbour frames on each side that set a frame's sharp reference", min=1)
     min_relative: float = option(0.5, "relative: drop a frame whose detail is below this share of its "
@@ -185,7 +187,7 @@ class RasterConfig:
 class TraceConfig:
     """Path-traced ambient occlusion and physically based shading of the objects."""
 
-    spp: int = option(16, "samples per pixel (upper bound when adaptive)", min=1)
+    spp: int = option(8, "samples per pixel (upper bound when adaptive)", min=1)
     lighting: str = option("scan", "light source: the scan's own radiance or the published four lights",
                            choices=("scan", "published"))
     spp_min: int = option(4, "samples per pixel before the adaptive stop may end a pixel", min=1)
@@ -208,7 +210,7 @@ class TraceConfig:
     shadow_samples: int = option(32, "shadow-ratio hemisphere rays per room point (0 = no shadow pass)", min=0)
     shadow_min_effect: float = option(0.005, "shadow ratio traced only where objects can change the light by "
                                       "more than this share", min=0.0, min_exclusive=True, max=1.0)
-    denoise: str = option("off", "denoise the PBR pass: oidn = Intel Open Image Denoise (pyoidn), bilateral = "
+    denoise: str = option("auto", "denoise the PBR pass: oidn = Intel Open Image Denoise (pyoidn), bilateral = "
                           "joint bilateral filter, auto = oidn when installed", choices=("off", "auto", "oidn",
                                                                                          "bilateral"))
 

@@ -80,8 +80,12 @@ def poses(n: int, step_deg: float = 10.0, step_m: float = 0.1) -> np.ndarray:
     return T
 
 
+# These tests are about blur; diversity (on by default) is switched off unless a test is about it.
+NO_DIVERSITY = {"min_angle_deg": 0.0, "min_baseline_m": 0.0}
+
+
 def run(images: list[np.ndarray], method: str = "relative", T: np.ndarray | None = None, **cfg_kw):
-    cfg = dataclasses.replace(SelectConfig(), method=method, **cfg_kw)
+    cfg = dataclasses.replace(SelectConfig(**NO_DIVERSITY), method=method, **cfg_kw)
     feats, te, tl, _ = score_frames(images, method=method, thesis_edge_range=cfg.thesis_edge_range)
     return select_frames(cfg, poses(len(images)) if T is None else T, features=feats, thesis_edge=te,
                          thesis_lap=tl)
@@ -322,7 +326,7 @@ def test_deterministic():
 
 def test_save_and_load_selection_round_trip(tmp_path):
     seq = sequence()
-    cfg = SelectConfig()
+    cfg = SelectConfig(**NO_DIVERSITY)
     feats, _, _, thumbs = score_frames(seq, method="relative")
     sel = select_frames(cfg, poses(12), features=feats)
     doc = selection_doc(sel, "room", np.arange(100, 112), cfg)
@@ -372,7 +376,7 @@ def test_stage_on_an_ingested_scan(tmp_path):
     save_scan(run_dir / "ingest" / "room", scan)
     # the registry (pipeline/stages.py) points at this stage only once the integrator wires it, so the
     # stage's own plan/run_item are called here, as the runner calls them
-    ctx = StageContext(run_dir=run_dir, cfg=build_config({}), stage="select")
+    ctx = StageContext(run_dir=run_dir, cfg=build_config({"select": NO_DIVERSITY}), stage="select")
     items = STAGE.plan(ctx)
     assert [it.key for it in items] == ["room"]
     summary = STAGE.run_item(ctx, items[0])
@@ -396,7 +400,7 @@ def test_real_redkitchen_frames(shared_data):
     images = [cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2RGB) for p in paths]
     T = np.stack([np.loadtxt(str(p).replace(".color.jpg", ".pose.txt")) for p in paths])
     feats, te, tl, _ = score_frames(images, method="thesis")
-    cfg = SelectConfig()
+    cfg = SelectConfig(**NO_DIVERSITY)
     rel = select_frames(cfg, T, features=feats)
     assert [i for i, r in enumerate(rel.reasons) if r != KEPT] == [47, 57]
     assert not rel.all_blurred
