@@ -211,7 +211,8 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
     E = lighting.direct_irradiance(mesh.vertices, mesh.normals.astype(np.float64), room.lights, shadows)
     vmat = room.quad_material[mesh.vertex_quad]
     emitter_v = np.array([m.emitter for m in room.materials])[vmat]
-    radiance = E / math.pi + room.ambient                     # outgoing radiance per unit albedo
+    ao = shadows.ambient_occlusion(mesh.vertices, mesh.normals.astype(np.float64))
+    radiance = E / math.pi + room.ambient * ao[:, None]      # outgoing radiance per unit albedo
     exposure = 0.5 / float(np.median(radiance[~emitter_v].mean(axis=1)))
     vertex_radiance = (radiance * exposure).astype(np.float32)
     lamp_L = {L.name: L.radiance for L in room.lights}
@@ -375,7 +376,8 @@ def _write_truth(out: Path, room, mesh, smesh, sverts: np.ndarray, T_wc: np.ndar
                  "exposure * albedo * outgoing radiance per unit albedo, clipped at 1",
         "exposure": exposure, "ambient_radiance": room.ambient, "lights": lights,
         "shading": "raster mode: Lambert; exact polygon irradiance per light with 3x3-ray soft shadows, "
-                   "baked on vertices every 0.1 m, plus uniform ambient; no inter-reflection"})
+                   "plus ambient radiance times ambient occlusion (16 rays, 0.6 m), baked on vertices every "
+                   "0.1 m; no inter-reflection"})
 
     thin = []
     for pi, p in enumerate(room.parts):

@@ -9,6 +9,7 @@ mesh's colours are baked with the same function, so photos and scan mesh see the
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 
@@ -114,3 +115,36 @@ class EmbreeShadows:
         hit = self._scene.run(o, dd, dists=tfar, query="OCCLUDED")
         occluded = np.asarray(hit).reshape(len(points), len(targets)) != -1
         return 1.0 - occluded.mean(axis=1)
+
+    def ambient_occlusion(self, points: np.ndarray, normals: np.ndarray, *, rays: int = 16,
+                          max_distance: float = 0.6) -> np.ndarray:
+        """Unoccluded fraction of the cosine-weighted hemisphere within ``max_distance`` (1 = open).
+
+        Directions are a fixed Fibonacci set (no random numbers), turned into each point's normal frame.
+
+        Parameters
+        ----------
+        points : (N, 3) float, metres
+        normals : (N, 3) float, unit
+        rays : int, directions per point
+        max_distance : float, metres; farther occluders do not count
+
+        Returns
+        -------
+        (N,) float64 in [0, 1]
+        """
+        k = np.arange(rays) + 0.5
+        r = np.sqrt(k / rays)                       # cosine-weighted: uniform on the disk, lifted
+        phi = k * math.pi * (3.0 - math.sqrt(5.0))
+        local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1.0 - r * r)], 1)   # (S, 3)
+        n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+        helper = np.where(np.abs(n[:, 2:3]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
+        t1 = np.cross(helper, n)
+        t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+        t2 = np.cross(n, t1)
+        d = (local[None, :, 0:1] * t1[:, None, :] + local[None, :, 1:2] * t2[:, None, :]
+             + local[None, :, 2:3] * n[:, None, :])                                       # (N, S, 3)
+        o = (points + 1e-3 * n)[:, None, :] + 4e-3 * d
+        hit = self._scene.run(o.reshape(-1, 3).astype(np.float32), d.reshape(-1, 3).astype(np.float32),
+                              dists=np.full(o.shape[0] * rays, max_distance, np.float32), query="OCCLUDED")
+        return 1.0 - (np.asarray(hit).reshape(len(points), rays) != -1).mean(axis=1)

@@ -6,6 +6,7 @@ The layouts are read back with small independent readers written from the format
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -476,6 +477,26 @@ def test_shadows_block_light():
     vis = EmbreeShadows(blocker, np.array([[0, 1, 2], [0, 2, 3]]))(
         np.array([[0, 0, 0.0], [5, 0, 0.0]]), np.array([[0, 0, 1.0], [0, 0, 1.0]]), L)
     np.testing.assert_allclose(vis, [0.0, 1.0])
+
+
+def test_ambient_occlusion_open_plane_and_closed_box():
+    from pipeline.seeding import item_rng
+    from pipeline.synthscan.lighting import EmbreeShadows
+    from pipeline.synthscan.room import _Builder, make_room, tessellate
+
+    plane = np.array([[-5, -5, 0.0], [5, -5, 0.0], [5, 5, 0.0], [-5, 5, 0.0]])
+    ao = EmbreeShadows(plane, np.array([[0, 1, 2], [0, 2, 3]])).ambient_occlusion(
+        np.zeros((1, 3)), np.array([[0, 0, 1.0]]))
+    assert ao[0] == 1.0
+    b = _Builder()
+    b.box("b", 0, (0, 0, 0), (0.4, 0.4, 0.4))
+    room = make_room(item_rng(0, "t"))
+    box = dataclasses.replace(room, quad_origin=np.array(b.o), quad_a=np.array(b.a), quad_b=np.array(b.b),
+                              quad_material=np.zeros(6, np.int32), quad_part=np.zeros(6, np.int32))
+    mesh = tessellate(box, 0.1)
+    inside = EmbreeShadows(mesh.vertices, mesh.faces).ambient_occlusion(
+        np.zeros((1, 3)), np.array([[0, 0, 1.0]]), max_distance=1.0)
+    assert inside[0] == 0.0
 
 
 def test_motion_extent_of_a_pure_rotation():
