@@ -27,7 +27,9 @@ import logging
 import math
 import shutil
 from dataclasses import dataclass
+from collections.abc import Mapping
 from pathlib import Path
+from types import MappingProxyType
 
 import numpy as np
 
@@ -43,11 +45,11 @@ VERSION = 1
 GT_DIR = "ground_truth"
 GT_DEPTH_SCALE = 1e-4         # metres per unit of the ground-truth depth PNGs
 LIGHT_CELL = 0.10             # metres, tessellation of the true mesh (carries the light map)
-PRESETS: dict[str, dict] = {
-    "demo": {"layout": "7scenes", "seed": 0, "width": 640, "height": 480, "frames": 50},
-    "tiny": {"layout": "7scenes", "seed": 0, "width": 160, "height": 120, "frames": 8},
-}
-BLUR_CODES = {"none": 0, "motion": 1, "defocus": 2}
+PRESETS: Mapping[str, Mapping] = MappingProxyType({
+    "demo": MappingProxyType({"layout": "7scenes", "seed": 0, "width": 640, "height": 480, "frames": 50}),
+    "tiny": MappingProxyType({"layout": "7scenes", "seed": 0, "width": 160, "height": 120, "frames": 8}),
+})
+BLUR_CODES: Mapping[str, int] = MappingProxyType({"none": 0, "motion": 1, "defocus": 2})
 MAX_SIZE = 4096
 MAX_FRAMES = 5000
 
