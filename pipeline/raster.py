@@ -433,13 +433,15 @@ def _scene_frames(run_dir: Path, scan: Scan) -> list[int]:
     return list(range(scan.num_frames))
 
 
-def _placements(ctx: StageContext, scene: str) -> list[tuple[Placement, tuple[int, ...] | None]]:
+def _placements(ctx: StageContext, scene: str, obj_ids: Sequence[int] | None = None
+                ) -> list[tuple[Placement, tuple[int, ...] | None]]:
     """Placements to render for ``scene``: from the poses file when configured, else the simulate stage."""
     if ctx.cfg.raster.poses:
         from pipeline.ingest import list_scenes, load_objects
 
-        entries = load_poses_file(ctx.cfg.raster.poses, obj_ids=[o.obj_id for o in load_objects(ctx.run_dir)],
-                                  scenes=list_scenes(ctx.run_dir))
+        if obj_ids is None:
+            obj_ids = [o.obj_id for o in load_objects(ctx.run_dir)]
+        entries = load_poses_file(ctx.cfg.raster.poses, obj_ids=obj_ids, scenes=list_scenes(ctx.run_dir))
         return [(e.placement, e.frames) for e in entries if e.placement.scene == scene]
     from pipeline.simulate import load_placement
 
@@ -508,11 +510,11 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     cfg = ctx.cfg.raster
     scene, drop, frame = item.data["scene"], item.data["drop"], item.data["frame"]
     scan = load_scan(ctx.run_dir, scene)
-    placement = next((p for p, _ in _placements(ctx, scene) if p.drop == drop), None)
+    objects = {o.obj_id: o for o in load_objects(ctx.run_dir)}
+    placement = next((p for p, _ in _placements(ctx, scene, list(objects)) if p.drop == drop), None)
     if placement is None:
         raise InputError(f"scene {scene!r} drop {drop}: placement not found (was the poses file or the "
                          f"simulate output changed after planning?)")
-    objects = {o.obj_id: o for o in load_objects(ctx.run_dir)}
     missing = sorted(set(int(i) for i in placement.obj_ids) - set(objects))
     if missing:
         raise InputError(f"scene {scene!r} drop {drop}: object ids {missing} are not in the ingested library")
