@@ -79,12 +79,11 @@ class Surface:
     inst: np.ndarray       # (R,) int32, 0 room, k + 1 object instance k
     prim: np.ndarray       # (R,) int32 triangle
     albedo: np.ndarray     # (R, 3) float32 linear base colour
-    emission: np.ndarray   # (R, 3) float32 linear radiance
-    t: np.ndarray          # (R,) float32 ray distance
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
-    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-20)
+    n = np.sqrt(np.einsum("ij,ij->i", x, x))
+    return x / np.maximum(n, 1e-20)[:, None]
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -92,7 +91,7 @@ def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def interact(scene: TraceScene, hits: Hits, dirs: np.ndarray) -> Surface:
-    """Surface data at the hits of rays ``dirs (R, 3)``; every ray must have hit."""
+    """Surface data at the hits of rays ``dirs (R, 3)``; every ray must have hit (emission aside)."""
     prim = hits.prim
     f = scene.faces[prim]
     u = hits.u[:, None]
@@ -100,16 +99,16 @@ def interact(scene: TraceScene, hits: Hits, dirs: np.ndarray) -> Surface:
     w = 1.0 - u - v
     V = scene.vertices
     p0, p1, p2 = V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]
-    p = (w * p0 + u * p1 + v * p2).astype(np.float32)
-    ng = _unit(np.cross(p1 - p0, p2 - p0))
-    ng = np.where((_dot(ng, dirs) > 0)[:, None], -ng, ng).astype(np.float32)
+    p = w * p0 + u * p1 + v * p2
+    ng = scene.tri_normal[prim]
+    ng = np.where((_dot(ng, dirs) > 0)[:, None], -ng, ng)
     N = scene.normals
     ns = _unit(w * N[f[:, 0]] + u * N[f[:, 1]] + v * N[f[:, 2]])
     ns = np.where((_dot(ns, ng) < 0)[:, None], -ns, ns)
     # a shading normal that faces away from the viewer would make the BSDF zero: use the true one
-    ns = np.where((_dot(ns, -dirs) <= 1e-4)[:, None], ng, ns).astype(np.float32)
+    ns = np.where((_dot(ns, dirs) >= -1e-4)[:, None], ng, ns)
     A = scene.albedo
-    alb = (w * A[f[:, 0]] + u * A[f[:, 1]] + v * A[f[:, 2]]).astype(np.float32)
+    alb = w * A[f[:, 0]] + u * A[f[:, 1]] + v * A[f[:, 2]]
     inst = scene.tri_inst[prim]
     for k, img in zip(scene.textures.inst, scene.textures.images):
         sel = np.flatnonzero(inst == k)
@@ -122,9 +121,16 @@ def interact(scene: TraceScene, hits: Hits, dirs: np.ndarray) -> Surface:
         col = np.clip(((uv[:, 0] % 1.0) * wd).astype(np.int64), 0, wd - 1)
         row = np.clip(((1.0 - uv[:, 1] % 1.0) * h).astype(np.int64), 0, h - 1)
         alb[sel] = alb[sel] * img[row, col]
+    return Surface(p=p, ng=ng, ns=ns, inst=inst, prim=prim, albedo=alb)
+
+
+def emission_at(scene: TraceScene, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(R, 3) float32 emitted radiance at barycentric points of triangles ``prim``."""
+    f = scene.faces[prim]
     E = scene.emission
-    em = (w * E[f[:, 0]] + u * E[f[:, 1]] + v * E[f[:, 2]]).astype(np.float32)
-    return Surface(p=p, ng=ng, ns=ns, inst=inst, prim=prim, albedo=alb, emission=em, t=hits.t)
+    u = u[:, None]
+    v = v[:, None]
+    return (1 - u - v) * E[f[:, 0]] + u * E[f[:, 1]] + v * E[f[:, 2]]
 
 
 def material(scene: TraceScene, s: Surface) -> bsdf.Material:
@@ -134,7 +140,7 @@ def material(scene: TraceScene, s: Surface) -> bsdf.Material:
 
 
 def take(s: Surface, idx: np.ndarray) -> Surface:
-    return Surface(*(getattr(s, k)[idx] for k in ("p", "ng", "ns", "inst", "prim", "albedo", "emission", "t")))
+    return Surface(*(getattr(s, k)[idx] for k in ("p", "ng", "ns", "inst", "prim", "albedo")))
 
 
 def primary_rays(camera: Camera, pixels: np.ndarray, jitter: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -144,12 +150,13 @@ def primary_rays(camera: Camera, pixels: np.ndarray, jitter: np.ndarray) -> tupl
     square centred on its integer coordinates (OpenCV convention).
     """
     K = camera.K
-    x = (pixels % camera.width).astype(np.float64) + jitter[:, 0] - 0.5
-    y = (pixels // camera.width).astype(np.float64) + jitter[:, 1] - 0.5
-    d = np.stack([(x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1], np.ones_like(x)], axis=1)
-    d = _unit(d) @ camera.T_c2w[:3, :3].T
-    o = np.broadcast_to(camera.T_c2w[:3, 3], d.shape)
-    return o.astype(np.float32), d.astype(np.float32)
+    jit = np.asarray(jitter, np.float32)
+    x = (pixels % camera.width).astype(np.float32) + (jit[:, 0] - np.float32(0.5 + K[0, 2]))
+    y = (pixels // camera.width).astype(np.float32) + (jit[:, 1] - np.float32(0.5 + K[1, 2]))
+    d = np.stack([x / np.float32(K[0, 0]), y / np.float32(K[1, 1]), np.ones_like(x)], axis=1)
+    d = _unit(d) @ camera.T_c2w[:3, :3].T.astype(np.float32)
+    o = np.broadcast_to(camera.T_c2w[:3, 3].astype(np.float32), d.shape)
+    return np.ascontiguousarray(o), d
 
 
 class _Counter:
@@ -241,7 +248,7 @@ def trace_samples(scene: TraceScene, camera: Camera, pixels: np.ndarray, setting
     counter = counter or _Counter()
     n = pixels.shape[0]
     eps = settings.ray_eps
-    o, d = primary_rays(camera, pixels, rng.random((n, 2)))
+    o, d = primary_rays(camera, pixels, rng.random((n, 2), dtype=np.float32))
     hits = scene.intersector.intersect(o, d)
     counter.rays += n
     inst = np.where(hits.hit, scene.tri_inst[np.maximum(hits.prim, 0)], -1)
@@ -285,22 +292,24 @@ def trace_samples(scene: TraceScene, camera: Camera, pixels: np.ndarray, setting
         hk = np.flatnonzero(h.hit)
         if hk.size == 0:
             break
-        idx, beta, pdf, wi = idx[hk], beta[hk], pdf[hk], wi[hk]
-        s = interact(scene, Hits(t=h.t[hk], prim=h.prim[hk], u=h.u[hk], v=h.v[hk]), wi)
-        emits = np.flatnonzero(s.emission.max(axis=1) > 0)
-        if emits.size:
-            w = np.ones(emits.size)
+        prim = h.prim[hk]
+        em = hk[scene.tri_emits[prim]]
+        if em.size:
+            pe = h.prim[em]
+            Le = emission_at(scene, pe, h.u[em], h.v[em])
+            w = np.ones(em.size, np.float32)
             if al.count:
-                pt = al.prob_of_tri[s.prim[emits]]
-                cos_l = np.abs(_dot(s.ng[emits], wi[emits]))
-                pdf_l = pt * s.t[emits].astype(np.float64) ** 2 / np.maximum(cos_l, 1e-12)
-                w = np.where(pt > 0, power_heuristic(pdf[emits], pdf_l), 1.0)
-            _add_rows(L, idx[emits], beta[emits] * s.emission[emits] * w[:, None])
-        scat = np.flatnonzero((s.inst >= 1) | (s.albedo.max(axis=1) > 0))
-        if scat.size == 0:
+                pt = al.prob_of_tri[pe]
+                cos_l = np.abs(_dot(scene.tri_normal[pe], wi[em]))
+                pdf_l = pt * h.t[em].astype(np.float64) ** 2 / np.maximum(cos_l, 1e-12)
+                w = np.where(pt > 0, power_heuristic(pdf[em], pdf_l), 1.0).astype(np.float32)
+            _add_rows(L, idx[em], beta[em] * Le * w[:, None])
+        sc_ = hk[scene.tri_scatters[prim]]
+        if sc_.size == 0:
             break
-        idx, beta, wo = idx[scat], beta[scat], -wi[scat]
-        s = take(s, scat)
+        idx, beta, wi = idx[sc_], beta[sc_], wi[sc_]
+        s = interact(scene, Hits(t=h.t[sc_], prim=h.prim[sc_], u=h.u[sc_], v=h.v[sc_]), wi)
+        wo = -wi
     return out
 
 

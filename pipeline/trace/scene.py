@@ -50,6 +50,9 @@ class TraceScene:
     num_room_tris: int
     scale: float              # metres, a size of the scene (for ray offsets)
     intersector: Intersector
+    tri_normal: np.ndarray    # (T, 3) float32 unit geometric normals (winding order)
+    tri_emits: np.ndarray     # (T,) bool, some vertex of the triangle has non-zero emission
+    tri_scatters: np.ndarray  # (T,) bool, paths continue from this triangle (objects; a reflecting room)
 
     @property
     def num_instances(self) -> int:
@@ -187,12 +190,20 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
     else:
         env = np.asarray(env_radiance, np.float32).reshape(3)
     ext = V.max(axis=0) - V.min(axis=0) if len(V) else np.ones(3)
+    tri_inst_all = np.concatenate(tri_inst)
+    alb_all = np.concatenate(albedo)
+    p = V[F]
+    tn = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    tn /= np.maximum(np.linalg.norm(tn, axis=1, keepdims=True), 1e-30)
+    tri_emits = (E[F].max(axis=(1, 2)) > 0) if len(F) else np.zeros(0, bool)
+    tri_scatters = (tri_inst_all >= 1) | ((alb_all[F].max(axis=(1, 2)) > 0) if len(F) else np.zeros(0, bool))
     log.debug("trace scene: %d triangles (%d room), %d area lights, %d point lights",
               len(F), nrt, area.count, pts.count)
     return TraceScene(vertices=V, faces=F, normals=np.concatenate(norms).astype(np.float32),
-                      tri_inst=np.concatenate(tri_inst), albedo=np.concatenate(albedo).astype(np.float32),
+                      tri_inst=tri_inst_all, albedo=alb_all.astype(np.float32),
                       emission=E, uv=np.concatenate(uvs), metallic=np.asarray(metallic, np.float32),
                       roughness=np.asarray(roughness, np.float32), specular=np.asarray(specular, np.float32),
                       textures=Textures(tuple(tex_inst), tuple(tex_img)), area_lights=area, point_lights=pts,
                       env_radiance=env, num_room_tris=nrt, scale=float(np.max(ext)),
-                      intersector=EmbreeIntersector(V, F))
+                      intersector=EmbreeIntersector(V, F), tri_normal=tn.astype(np.float32),
+                      tri_emits=tri_emits, tri_scatters=tri_scatters)

@@ -1,10 +1,12 @@
 """The ``trace`` stage: AO, PBR, shadow-ratio, albedo and normal passes of every rastered frame.
 
-Items are the raster stage's accepted frames, ``<scene>/drop<NNNN>/f<frame:06d>``. Each item reads
-the raster frame (``labels`` and the JSON's camera and per-instance ``obj_id``, ``R_m2c``, ``t_m2c``),
-the ingested scan and object library, and the room mesh at the level of detail prep chose for tracing
-(``RUN/prep/<scene>/room_trace.ply``, else the ingest room mesh). It writes
-``RUN/trace/<scene>/drop<NNNN>/f<frame:06d>.npz`` with
+Items are drops, ``<scene>/drop<NNNN>``: the Embree scene (room + placed objects) is built once per
+drop and every accepted raster frame of the drop is traced with it. Each frame's generator is derived
+from the run seed and the frame's own key, so outputs do not depend on how frames are grouped. An item
+reads the raster frames (``labels`` and the JSON's camera and per-instance ``obj_id``, ``R_m2c``,
+``t_m2c``), the ingested scan and object library, and the room mesh at the level of detail prep chose
+for tracing (``RUN/prep/<scene>/room_trace.ply``, else the ingest room mesh). It writes
+``RUN/trace/<scene>/drop<NNNN>/f<frame:06d>.npz`` per frame with
 
 - ``pbr`` (H, W, 3) float32: linear radiance, premultiplied by ``coverage``; 0 outside traced pixels;
 - ``ao`` (H, W) float32 in [0, 1] (1 outside object pixels);
@@ -60,38 +62,27 @@ def room_mesh_path(run_dir: Path, scan) -> str:
 
 def plan(ctx: StageContext) -> list[Item]:
     root = ctx.run_dir / "raster"
-    items = []
     if not root.is_dir():
         log.warning("trace: %s does not exist; run the raster stage first", root)
-        return items
+        return []
+    drops: dict[tuple[str, str], list[int]] = {}
     for npz in sorted(root.glob("*/drop*/f*.npz")):
         scene, drop_dir, stem = npz.parent.parent.name, npz.parent.name, npz.stem
         try:
-            drop, frame = int(drop_dir[4:]), int(stem[1:])
+            int(drop_dir[4:])
+            frame = int(stem[1:])
         except ValueError:
             continue
-        items.append(Item(key=f"{scene}/{drop_dir}/{stem}", data={"scene": scene, "drop": drop, "frame": frame}))
-    return items
+        drops.setdefault((scene, drop_dir), []).append(frame)
+    return [Item(key=f"{scene}/{drop_dir}", data={"scene": scene, "drop": int(drop_dir[4:]), "frames": frames})
+            for (scene, drop_dir), frames in sorted(drops.items())]
 
 
-def run_item(ctx: StageContext, item: Item) -> dict:
-    from pipeline.ingest import load_objects, load_scan
-    from pipeline.scanformats.mesh import read_room_ply
-    from pipeline.trace.denoise import denoise
-    from pipeline.trace.pbr import Camera, render, trace_mask
-    from pipeline.trace.scene import build_scene, instance_from_model
-    from pipeline.trace.shadow import shadow_ratio
+def _instances(doc: dict, stem: Path, library: dict) -> list:
+    from pipeline.trace.scene import instance_from_model
 
-    cfg = ctx.cfg.trace
-    t0 = time.perf_counter()
-    scene_name, drop, frame = item.data["scene"], int(item.data["drop"]), int(item.data["frame"])
-    stem = ctx.run_dir / "raster" / scene_name / f"drop{drop:04d}" / f"f{frame:06d}"
-    doc = read_json(stem.with_suffix(".json"))
-    labels = load_npz(stem.with_suffix(".npz"))["labels"]
-    scan = load_scan(ctx.run_dir, scene_name)
-    library = {o.obj_id: o for o in load_objects(ctx.run_dir)}
     T_c2w = np.asarray(doc["T_c2w"], np.float64)
-    instances = []
+    out = []
     for inst in doc["instances"]:
         oid = int(inst["obj_id"])
         if oid not in library:
@@ -99,32 +90,75 @@ def run_item(ctx: StageContext, item: Item) -> dict:
                              f"with the same objects.paths as raster")
         R_m2w = T_c2w[:3, :3] @ np.asarray(inst["R_m2c"], np.float64)
         t_m2w = T_c2w[:3, :3] @ np.asarray(inst["t_m2c"], np.float64) + T_c2w[:3, 3]
-        instances.append(instance_from_model(library[oid], R_m2w, t_m2w))
-    rv, rf, rc = read_room_ply(room_mesh_path(ctx.run_dir, scan))
-    env = None if cfg.env_radiance < 0 else np.full(3, cfg.env_radiance, np.float32)
-    scene = build_scene(rv, rf, rc, instances, lighting=cfg.lighting, radiance_scale=cfg.radiance_scale,
-                        light_threshold=cfg.light_threshold, light_gain=cfg.light_gain, env_radiance=env,
-                        published_power=cfg.published_power, up=scan.up_w)
-    cam = Camera(K=np.asarray(doc["K"], np.float64), T_c2w=T_c2w, width=int(doc["width"]),
-                 height=int(doc["height"]))
+        out.append(instance_from_model(library[oid], R_m2w, t_m2w))
+    return out
+
+
+def trace_frame(ctx: StageContext, scene, scene_name: str, drop: int, frame: int, doc: dict,
+                labels: np.ndarray, *, room_isect=None, obj_isect=None) -> dict:
+    """Trace one frame with a prebuilt scene and write its NPZ; returns the frame's summary."""
+    from pipeline.seeding import item_rng
+    from pipeline.trace.denoise import denoise
+    from pipeline.trace.pbr import Camera, render, trace_mask
+    from pipeline.trace.shadow import shadow_ratio
+
+    cfg = ctx.cfg.trace
+    t0 = time.perf_counter()
+    cam = Camera(K=np.asarray(doc["K"], np.float64), T_c2w=np.asarray(doc["T_c2w"], np.float64),
+                 width=int(doc["width"]), height=int(doc["height"]))
     if labels.shape != (cam.height, cam.width):
-        raise InputError(f"{stem}.npz: labels {labels.shape} do not match the frame size "
-                         f"{(cam.height, cam.width)} in its JSON; re-run raster")
-    rng = ctx.rng(item)
+        raise InputError(f"raster frame {scene_name}/drop{drop:04d}/f{frame:06d}: labels {labels.shape} do not "
+                         f"match the frame size {(cam.height, cam.width)} in its JSON; re-run raster")
+    rng = item_rng(ctx.cfg.run.seed, ctx.stage, f"{scene_name}/drop{drop:04d}/f{frame:06d}")
     mask = trace_mask(labels, cfg.edge_band)
     fb = render(scene, cam, mask, settings_from_config(cfg), rng)
     pbr = fb.pbr
     if cfg.denoise != "off":
         pbr = denoise(fb.pbr, fb.albedo, fb.normal, fb.coverage > 0, method=cfg.denoise)
-    sr = (shadow_ratio(scene, cam, labels, rng, samples=cfg.shadow_samples, min_effect=cfg.shadow_min_effect)
+    sr = (shadow_ratio(scene, cam, labels, rng, samples=cfg.shadow_samples, min_effect=cfg.shadow_min_effect,
+                       room_isect=room_isect, obj_isect=obj_isect)
           if cfg.shadow_samples > 0 else np.ones(labels.shape, np.float32))
     atomic_save_npz(output_path(ctx.run_dir, scene_name, drop, frame), pbr=pbr.astype(np.float32),
                     ao=fb.ao, coverage=fb.coverage, shadow_ratio=sr, albedo=fb.albedo, normal=fb.normal,
                     spp=np.minimum(fb.spp, 65535).astype(np.uint16))
     traced = int(mask.sum())
     return {"traced_px": traced, "object_px": int((labels > 0).sum()), "rays": int(fb.rays),
-            "mean_spp": float(fb.spp[mask].mean()) if traced else 0.0,
+            "mean_spp": round(float(fb.spp[mask].mean()), 3) if traced else 0.0,
             "shadow_px": int((sr != 1.0).sum()), "seconds": round(time.perf_counter() - t0, 3)}
+
+
+def run_item(ctx: StageContext, item: Item) -> dict:
+    from pipeline.ingest import load_objects, load_scan
+    from pipeline.scanformats.mesh import read_room_ply
+    from pipeline.trace.scene import build_scene
+    from pipeline.trace.shadow import split_intersectors
+
+    cfg = ctx.cfg.trace
+    t0 = time.perf_counter()
+    scene_name, drop = item.data["scene"], int(item.data["drop"])
+    frames = [int(f) for f in item.data["frames"]]
+    raster_dir = ctx.run_dir / "raster" / scene_name / f"drop{drop:04d}"
+    scan = load_scan(ctx.run_dir, scene_name)
+    library = {o.obj_id: o for o in load_objects(ctx.run_dir)}
+    rv, rf, rc = read_room_ply(room_mesh_path(ctx.run_dir, scan))
+    env = None if cfg.env_radiance < 0 else np.full(3, cfg.env_radiance, np.float32)
+    scene = None
+    split = (None, None)
+    out = {}
+    for frame in frames:
+        stem = raster_dir / f"f{frame:06d}"
+        doc = read_json(stem.with_suffix(".json"))
+        labels = load_npz(stem.with_suffix(".npz"))["labels"]
+        if scene is None:  # one placement per drop: every frame's instances have the same world poses
+            scene = build_scene(rv, rf, rc, _instances(doc, stem, library), lighting=cfg.lighting,
+                                radiance_scale=cfg.radiance_scale, light_threshold=cfg.light_threshold,
+                                light_gain=cfg.light_gain, env_radiance=env,
+                                published_power=cfg.published_power, up=scan.up_w)
+            if cfg.shadow_samples > 0:
+                split = split_intersectors(scene)
+        out[f"f{frame:06d}"] = trace_frame(ctx, scene, scene_name, drop, frame, doc, labels,
+                                           room_isect=split[0], obj_isect=split[1])
+    return {"frames": out, "seconds": round(time.perf_counter() - t0, 3)}
 
 
 STAGE = Stage("trace", plan, run_item)
