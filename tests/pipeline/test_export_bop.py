@@ -260,3 +260,21 @@ def test_export_takes_rgb_and_depth_from_the_compositor(run):
         cpath.unlink()
         dpath.unlink()
         export.run_item(ctx, item)
+
+
+def test_chunks_split_into_bop_scene_folders(run, tmp_path):
+    import shutil
+
+    rd = tmp_path / "RUN"
+    shutil.copytree(run["run_dir"], rd, ignore=shutil.ignore_patterns("export"))
+    cfg = build_config({"raster": {"poses": str(run["poses"])},
+                        "export": {"chunk_size": 4, "formats": ["bop"], "image_format": "png"}})
+    S.run_stage_direct(export.STAGE, rd, cfg)
+    root = rd / "export" / export.DATASET
+    folders = sorted(p.name for p in (root / "train_pbr").iterdir())
+    assert folders == ["000000", "000001"]
+    sizes = [len(json.loads((root / "train_pbr" / f / "scene_gt.json").read_text())) for f in folders]
+    assert sizes == [4, 2]
+    assert not (root / export.MERGED_COCO).exists()  # formats = bop only
+    assert not (root / "train_pbr" / "000000" / "scene_gt_coco.json").exists()
+    assert sorted(p.name for p in (root / "train_pbr" / "000001" / "rgb").iterdir()) == ["000000.png", "000001.png"]
