@@ -7,8 +7,9 @@ For each (scene, drop, frame) item:
    is below ``raster.min_visible_area`` of the image, the frame cannot reach it and is rejected.
 2. **Object passes**: each instance alone over its projected window (amodal depth, so amodal masks
    and the object depth/label composition come from the same rasterization), plus the parts of its
-   silhouette outside the image (for BOP's ``px_count_all``). Nearest instance per pixel -> object depth and front labels (uint16:
-   no 255-object limit). Second rejection check on the amodal union, before the room pass.
+   silhouette outside the image (for BOP's ``px_count_all``). Nearest instance per pixel -> object
+   depth and front labels (uint16: no 255-object limit). Second rejection check on the amodal union,
+   before the room pass.
 3. **Scene depth**: the room mesh's depth at the frame, rendered once per frame and cached on disk
    (``RUN/raster/<scene>/scene_depth/f<frame:06d>.npz``), shared by every drop.
 4. **Occlusion**: object pixels behind the room are hidden; with ``raster.real_depth_fusion`` the real
@@ -23,8 +24,9 @@ and ``f<frame:06d>.json`` with the camera and the per-instance annotations (metr
 has only its JSON, with ``"status": "rejected"`` and the reason. ``frame`` is the index into the
 Scan's arrays; ``frame_id`` in the JSON is the scan's own number.
 
-Poses without physics: ``raster.poses = "poses.json"`` renders chosen poses instead of the simulate
-stage's drops. Schema (one object, or a list of them)::
+Poses without physics: ``scansynth raster RUN --poses poses.json`` (or ``raster.poses = "poses.json"``
+in the config) renders chosen poses instead of the simulate stage's drops. Schema (one object, or a
+list of them)::
 
     {"scene": "kitchen",              # Scan.name
      "drop": 0,                       # drop index (output folder drop0000)

@@ -6,6 +6,10 @@ camera, over the whole image or a rectangular window of it (possibly outside the
 only a shift of the principal point). Labels and masks are derived from depth by
 :mod:`pipeline.annotate`; nothing here knows about scans or annotations.
 
+The platform is OSMesa (software, any machine); with ``PYOPENGL_PLATFORM=egl`` in the environment
+before scansynth starts, :mod:`pipeline.gl` loads pyrender on EGL instead (GPU machines). Nothing
+else changes.
+
 The OpenCV -> OpenGL camera conversion lives in this module only (:func:`gl_camera_pose`,
 :func:`gl_intrinsics`). Pixel ``(row r, column c)`` of a rendered image samples the OpenCV image point
 ``u = c, v = r`` (the pixel centre): OpenGL samples at ``c + 0.5``, so the principal point passed to
