@@ -332,3 +332,22 @@ def _cfg_with_poses(poses):
     # hand-made ingest outputs can be written into it; the poses path must exist for validation.
     poses.write_text("[]")
     return build_config({"raster": {"poses": str(poses)}})
+
+
+def test_stage_renders_accepted_simulated_drops_on_selected_frames(tmp_path, rasterizer):
+    """Without a poses file the stage reads the simulate stage's drops (rejected ones are skipped) and the
+    select stage's kept frames."""
+    import pipeline.raster as raster_stage
+    from pipeline.io import atomic_write_json
+    from pipeline.simulate import placement_path, save_placement
+
+    run = tmp_path / "RUN"
+    made = S.make_run(run, rasterizer, frames=3, drops=2)
+    ok, bad = made["placements"]
+    save_placement(placement_path(run, "room", 0), ok)
+    save_placement(placement_path(run, "room", 1), dataclasses.replace(bad, verdict="rejected:left the room"))
+    atomic_write_json(run / "select" / "room" / "selection.json", {"kept": [0, 2]})
+    res = S.run_stage_direct(raster_stage.STAGE, run, build_config({}))
+    assert sorted(res) == ["room/drop0000/f000000", "room/drop0000/f000002"]
+    doc, arr = load_frame(raster_stage.frame_stem(run, "room", 0, 2))
+    assert doc["status"] == "ok" and arr["labels"].max() == len(ok.obj_ids)
