@@ -86,3 +86,7 @@ ROOM_PAD_M = 0.10
 # acos(0.3) ~ 72 degrees of that face's normal; beside open borders it is not (the point is "next to"
 # the surface, neither in front nor behind).
 ROOM_SIGN_MIN_COS = 0.3
+
+# Simplification of meshes with at least this many faces runs in two processes (slabs with fixed
+# cuts): decimation is single-threaded and dominates the time of a 2M-face repair + simplify.
+PARALLEL_MIN_FACES = 400_000

@@ -45,25 +45,37 @@ def edge_topology(faces: np.ndarray, n_vertices: int) -> dict[str, np.ndarray]:
     -------
     dict with ``edges`` (E, 2) int64 (sorted pairs), ``counts`` (E,) int64 (faces per edge),
     ``inverse`` (3F,) int64 (edge index of each half-edge, face-major), ``same_direction`` (E,) bool
-    (a two-face edge whose half-edges run the same way: inconsistent orientation).
+    (a two-face edge whose half-edges run the same way: inconsistent orientation), ``order`` (3F,)
+    the half-edges sorted by edge.
     """
     f = np.asarray(faces, dtype=np.int64)
+    nv = np.int64(max(n_vertices, 1))
     he = f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    lo, hi = he.min(axis=1), he.max(axis=1)
-    key = lo * np.int64(max(n_vertices, 1)) + hi
-    uniq, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    key = np.minimum(he[:, 0], he[:, 1]) * nv + np.maximum(he[:, 0], he[:, 1])
+    order = np.argsort(key)
+    ks = key[order]
+    new = np.ones(len(ks), dtype=bool)
+    new[1:] = ks[1:] != ks[:-1]
+    gid = np.cumsum(new) - 1
+    inverse = np.empty(len(ks), dtype=np.int64)
+    inverse[order] = gid
+    uniq = ks[new]
+    counts = np.diff(np.append(np.flatnonzero(new), len(ks)))
     forward = (he[:, 0] < he[:, 1]).astype(np.int64)
     n_forward = np.bincount(inverse, weights=forward, minlength=len(uniq))
     same = (counts == 2) & (n_forward != 1)
-    edges = np.stack([uniq // max(n_vertices, 1), uniq % max(n_vertices, 1)], axis=1)
-    return {"edges": edges, "counts": counts, "inverse": inverse, "same_direction": same}
+    edges = np.stack([uniq // nv, uniq % nv], axis=1)
+    return {"edges": edges, "counts": counts, "inverse": inverse, "same_direction": same,
+            "order": order}
 
 
-def count_fans(faces: np.ndarray, n_vertices: int, inverse: np.ndarray) -> np.ndarray:
+def count_fans(faces: np.ndarray, n_vertices: int, inverse: np.ndarray,
+               order: np.ndarray | None = None) -> np.ndarray:
     """Number of edge-connected face fans around each vertex (V,) int64 (0 for unreferenced).
 
     A vertex is manifold when its faces form one fan; a bow-tie vertex has two or more.
-    ``inverse`` is :func:`edge_topology`'s half-edge to edge map.
+    ``inverse`` is :func:`edge_topology`'s half-edge to edge map (``order``, its sort of the
+    half-edges by edge, saves a sort when given).
     """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -79,7 +91,8 @@ def count_fans(faces: np.ndarray, n_vertices: int, inverse: np.ndarray) -> np.nd
     v0, v1 = f.reshape(-1), f[:, [1, 2, 0]].reshape(-1)
     c_lo = np.where(v0 < v1, c0, c1)
     c_hi = np.where(v0 < v1, c1, c0)
-    order = np.argsort(inverse, kind="stable")
+    if order is None:
+        order = np.argsort(inverse)
     inv_s = inverse[order]
     same = inv_s[1:] == inv_s[:-1]
     a, b = order[:-1][same], order[1:][same]
@@ -212,7 +225,7 @@ def inspect_arrays(vertices: np.ndarray, faces: np.ndarray, *,
     out["holes"] = int(len(loops))
     out["largest_hole_edges"] = int(loops[0]) if len(loops) else 0
     out["non_manifold_edges"] = int((counts > 2).sum())
-    fans = count_fans(ft, nv, topo["inverse"])
+    fans = count_fans(ft, nv, topo["inverse"], topo["order"])
     out["non_manifold_vertices"] = int((fans > 1).sum())
     out["inconsistent_orientation_edges"] = int(topo["same_direction"].sum())
     ncomp, _ = face_components(ft, nv)

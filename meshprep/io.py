@@ -90,6 +90,12 @@ def load_meshset(path: str | Path) -> "pymeshlab.MeshSet":
             ms.set_current_mesh(mid)
             ms.delete_current_mesh()
         ms.set_current_mesh(keep)
+    names = list(ms.current_mesh().textures()) if ms.current_mesh().texture_number() else []
+    if "dummy.png" in names:
+        # PyMeshLab could not decode a texture image (its wheels read PNG but not JPEG); UVs are
+        # kept, the image is written as a blank "dummy.png". Convert the texture to PNG to keep it.
+        log.warning("%s: a texture image could not be read (PyMeshLab reads PNG, not JPEG); UVs are "
+                    "kept but the texture is written as a blank dummy.png; convert it to PNG", p)
     return ms
 
 

@@ -25,22 +25,91 @@ log = logging.getLogger(__name__)
 ERROR_STATS = ("max", "p95", "mean")
 
 
-def simplify_meshset(ms: "pymeshlab.MeshSet", target_faces: int, *, preserve_boundary: bool = True
-                     ) -> int:
+def _decimation_params(target_faces: int, preserve_boundary: bool) -> dict:
+    return dict(targetfacenum=int(max(target_faces, 1)), qualitythr=0.3,
+                preserveboundary=preserve_boundary, boundaryweight=1.0, preservenormal=True,
+                optimalplacement=True, planarquadric=True)
+
+
+def _decimate_part(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None,
+                   target_faces: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Worker: decimate one slab given as arrays. Its borders (the cuts, and with them the mesh's
+    own open borders) are always kept in place, so the slabs weld back exactly."""
+    import pymeshlab
+
+    kw = {} if colors is None else {"v_color_matrix": colors}
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=vertices, face_matrix=faces, **kw))
+    ms.meshing_decimation_quadric_edge_collapse(**_decimation_params(target_faces, True),
+                                                preservetopology=False, autoclean=True)
+    m = ms.current_mesh()
+    m.compact()
+    return (np.array(m.vertex_matrix()), np.array(m.face_matrix()),
+            np.array(m.vertex_color_matrix()) if colors is not None else None)
+
+
+def _simplify_parallel(ms: "pymeshlab.MeshSet", target_faces: int, workers: int) -> None:
+    """Split the current mesh into ``workers`` slabs along its longest axis, decimate them in
+    separate processes with the cuts kept fixed (boundary preservation), and weld the slabs back
+    (the cut vertices are untouched, so they match bit for bit). Replaces the current mesh."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    import pymeshlab
+
+    m = ms.current_mesh()
+    v = np.array(m.vertex_matrix())
+    f = np.array(m.face_matrix())
+    col = np.array(m.vertex_color_matrix()) if m.has_vertex_color() else None
+    axis = int(np.argmax(v.max(0) - v.min(0)))
+    key = v[f, axis].mean(axis=1)
+    cuts = np.quantile(key, np.linspace(0, 1, workers + 1)[1:-1])
+    slab = np.searchsorted(cuts, key)
+    jobs = []
+    for k in range(workers):
+        fk = f[slab == k]
+        used, inv = np.unique(fk, return_inverse=True)
+        jobs.append((v[used], inv.reshape(-1, 3).astype(np.int32), None if col is None else col[used],
+                     int(round(target_faces * len(fk) / len(f)))))
+    with ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn")) as ex:
+        parts = list(ex.map(_decimate_part, *zip(*jobs)))
+    off = np.cumsum([0] + [len(p[0]) for p in parts[:-1]])
+    vv = np.vstack([p[0] for p in parts])
+    ff = np.vstack([p[1] + o for p, o in zip(parts, off)]).astype(np.int32)
+    kw = {} if col is None else {"v_color_matrix": np.vstack([p[2] for p in parts])}
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=vv, face_matrix=ff, **kw))
+    ms.meshing_remove_duplicate_vertices()
+    ms.meshing_remove_unreferenced_vertices()
+
+
+def simplify_meshset(ms: "pymeshlab.MeshSet", target_faces: int, *, preserve_boundary: bool = True,
+                     workers: int | None = None) -> int:
     """Add a simplified copy (about ``target_faces`` faces) of the current mesh of ``ms``.
 
     The copy lives in the same MeshSet (so it shares the texture images), becomes the current mesh,
     and its id is returned; the original mesh is not modified.
+
+    ``workers`` > 1 decimates slabs of the mesh in parallel processes (meshes without UVs; the slab
+    cuts are kept exactly, so the seams add a line of unsimplified edges, and open borders are
+    always preserved). ``None``: two
+    workers for meshes of ``PARALLEL_MIN_FACES`` faces or more when two cores exist, else one.
     """
+    import os
+
+    m = ms.current_mesh()
+    if workers is None:
+        workers = (min(2, os.cpu_count() or 1)
+                   if m.face_number() >= constants.PARALLEL_MIN_FACES else 1)
+    if target_faces >= m.face_number():
+        ms.generate_copy_of_current_mesh()
+        return ms.current_mesh_id()
+    if workers > 1 and not m.has_wedge_tex_coord() and not m.has_vertex_tex_coord():
+        _simplify_parallel(ms, target_faces, workers)
+        return ms.current_mesh_id()
     ms.generate_copy_of_current_mesh()
     new = ms.current_mesh_id()
-    m = ms.current_mesh()
-    if target_faces >= m.face_number():
-        return new
-    common = dict(targetfacenum=int(max(target_faces, 1)), qualitythr=0.3,
-                  preserveboundary=preserve_boundary, boundaryweight=1.0, preservenormal=True,
-                  optimalplacement=True, planarquadric=True)
-    if m.has_wedge_tex_coord():
+    common = _decimation_params(target_faces, preserve_boundary)
+    if ms.current_mesh().has_wedge_tex_coord():
         ms.meshing_decimation_quadric_edge_collapse_with_texture(**common, extratcoordw=1.0)
     else:
         ms.meshing_decimation_quadric_edge_collapse(**common, preservetopology=False, autoclean=True)
@@ -67,7 +136,8 @@ def _drop(ms: "pymeshlab.MeshSet", mid: int) -> None:
 def simplify(in_path: str | Path, out_path: str | Path, *, target_faces: int | None = None,
              max_error: float | None = None, error_stat: str = "max", relative: bool = False,
              preserve_boundary: bool = True, report: str | Path | None = None,
-             samples: int = constants.DEVIATION_SAMPLES, seed: int = 0) -> dict:
+             samples: int = constants.DEVIATION_SAMPLES, seed: int = 0,
+             workers: int | None = None) -> dict:
     """Simplify a mesh file to a face count or an error bound; write the mesh and a JSON report.
 
     Parameters
@@ -84,6 +154,8 @@ def simplify(in_path: str | Path, out_path: str | Path, *, target_faces: int | N
         Keep open borders in place (scans).
     samples, seed
         Deviation sampling (points per surface, seed).
+    workers : int, optional
+        Parallel decimation processes (see :func:`simplify_meshset`).
 
     Returns
     -------
@@ -109,7 +181,7 @@ def simplify(in_path: str | Path, out_path: str | Path, *, target_faces: int | N
         raise InputError(f"{in_path}: has no faces to simplify (a point cloud?); give a triangle mesh")
     tries = []
     if target_faces is not None:
-        best = simplify_meshset(ms, target_faces, preserve_boundary=preserve_boundary)
+        best = simplify_meshset(ms, target_faces, preserve_boundary=preserve_boundary, workers=workers)
         dev = _deviation(ms, src, best, samples, seed)
     else:
         v0, _ = _arrays_id(ms, src)
@@ -121,7 +193,7 @@ def simplify(in_path: str | Path, out_path: str | Path, *, target_faces: int | N
         # Halve while the bound holds, then bisect between the last good and first bad count.
         while 4 <= n < hi:
             ms.set_current_mesh(src)
-            cand = simplify_meshset(ms, n, preserve_boundary=preserve_boundary)
+            cand = simplify_meshset(ms, n, preserve_boundary=preserve_boundary, workers=workers)
             d = _deviation(ms, src, cand, samples, seed)
             ok = d[error_stat] <= bound
             tries.append({"target_faces": n, "faces": int(ms.mesh(cand).face_number()),

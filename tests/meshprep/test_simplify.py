@@ -78,3 +78,14 @@ def test_textured_model_keeps_uvs_and_texture(shared_data, tmp_path):
     st = inspect(out)
     assert st["uvs"] and st["textures"] == 1 and rep["after"]["faces"] <= 4000
     assert (tmp_path / "003_cracker_box_textured.png").is_file()
+
+
+@pytest.mark.slow
+def test_parallel_slabs_weld_back(coloured_terrain, tmp_path):
+    one = simplify(coloured_terrain, tmp_path / "1.ply", target_faces=3000, workers=1, samples=5000)
+    two = simplify(coloured_terrain, tmp_path / "2.ply", target_faces=3000, workers=2, samples=5000)
+    s1, s2 = inspect(tmp_path / "1.ply"), inspect(tmp_path / "2.ply")
+    assert s2["components"] == 1 and s2["manifold"] and s2["vertex_colors"]
+    assert s2["holes"] == s1["holes"] == 1                    # the seam is welded: only the outer border
+    assert abs(two["after"]["faces"] - 3000) < 300
+    assert two["deviation"]["p95"] < 2 * one["deviation"]["p95"] + 1e-4
