@@ -73,6 +73,19 @@ def test_masks_and_depth_match_independent_ray_caster(rasterizer, scene):
     assert np.median(np.abs(scene["room_depth"][hit] - room_d[hit])) <= RASTER_DEPTH_MEDIAN_M
 
 
+def test_render_ids_matches_per_instance_composition(rasterizer, scene):
+    """The one-pass id render (flat 24-bit colours) agrees with composing per-instance depth renders."""
+    pl = scene["pl"]
+    inst = [(scene["keys"][int(o)], annotate.rigid(R, t)) for o, R, t in zip(pl.obj_ids, pl.R_m2w, pl.t_m2w)]
+    depth, ids = rasterizer.render_ids(scene["K"], scene["T"], W, H, inst)
+    singles = np.stack([rasterizer.render_depth(scene["K"], scene["T"], W, H, [i]) for i in inst])
+    d2, front = annotate.compose_front(singles)
+    assert S.iou(ids > 0, front > 0) >= RASTER_MASK_IOU_MIN
+    both = (ids > 0) & (front > 0)
+    assert np.mean(ids[both] == front[both]) >= 0.999
+    assert np.median(np.abs(depth[both] - d2[both])) <= RASTER_DEPTH_MEDIAN_M
+
+
 def test_renders_reuse_compiled_shader_programs(rasterizer, scene):
     """pyrender's program cache misses on every OSMesa render unless fixed (a leak and most of the cost)."""
     _render(rasterizer, scene)
