@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.tolerances import TRACE_RAY_EPS_M
 from pipeline.trace import bsdf
 from pipeline.trace.intersect import Hits, offset_origins
 from pipeline.trace.lights import LUMINANCE, sample_area_lights
@@ -53,7 +54,7 @@ class RenderSettings:
     rr_depth: int = 2             # Russian roulette from this scattering event on
     ao_samples: int = 1           # AO rays per primary object hit (0 = no AO pass)
     ao_distance: float = 0.3      # metres, AO occluders farther than this do not count
-    ray_eps: float = 1e-4         # metres, origin offset off surfaces
+    ray_eps: float = TRACE_RAY_EPS_M  # metres, origin offset off surfaces
 
 
 @dataclass(frozen=True)

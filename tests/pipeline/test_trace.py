@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from pipeline.tolerances import TRACE_FURNACE_REL_TOL
 from pipeline.trace import bsdf
 from pipeline.trace.intersect import EmbreeIntersector, NumPySlowIntersector
 from pipeline.trace.lights import AreaLights, published_lights, srgb_to_linear
@@ -241,9 +242,9 @@ def test_white_furnace_lambert_sphere_renders_one():
     sc = build_scene(*EMPTY, [sphere_object(specular=0.0)], env_radiance=np.ones(3))
     fb = render(sc, camera(), np.ones((36, 48), bool), RenderSettings(spp=8, spp_min=8), np.random.default_rng(0))
     px = fb.pbr[_interior(fb)]
-    assert px.size > 300 and abs(px.mean() - 1.0) < 5e-3
+    assert px.size > 300 and abs(px.mean() - 1.0) < TRACE_FURNACE_REL_TOL
     # samples lost only where the interpolated normal sends a ray under the facet (energy is never gained)
-    assert px.max() <= 1.0 + 1e-5 and (np.abs(px - 1.0) > 5e-3).mean() < 0.02
+    assert px.max() <= 1.0 + 1e-5 and (np.abs(px - 1.0) > TRACE_FURNACE_REL_TOL).mean() < 0.02
 
 
 def test_white_furnace_with_inter_reflection_and_russian_roulette():
@@ -252,7 +253,7 @@ def test_white_furnace_with_inter_reflection_and_russian_roulette():
     s = RenderSettings(spp=64, spp_min=64, max_depth=64, rr_depth=1)
     fb = render(sc, camera(), np.ones((36, 48), bool), s, np.random.default_rng(0))
     px = fb.pbr[_interior(fb)]
-    assert abs(px.mean() - 1.0) < 5e-3
+    assert abs(px.mean() - 1.0) < TRACE_FURNACE_REL_TOL
 
 
 def test_white_furnace_inside_an_emitting_room():
@@ -260,14 +261,15 @@ def test_white_furnace_inside_an_emitting_room():
     sc = build_scene(rv, rf, None, [sphere_object(specular=0.0)], room_linear_radiance=np.ones((len(rv), 3)))
     fb = render(sc, camera(), np.ones((36, 48), bool), RenderSettings(spp=4, spp_min=4), np.random.default_rng(0))
     px = fb.pbr[_interior(fb)]
-    assert abs(px.mean() - 1.0) < 5e-3 and (np.abs(px - 1.0) > 5e-3).mean() < 0.02
+    assert abs(px.mean() - 1.0) < TRACE_FURNACE_REL_TOL
+    assert (np.abs(px - 1.0) > TRACE_FURNACE_REL_TOL).mean() < 0.02
 
 
 def test_smooth_white_metal_furnace_is_near_one():
     sc = build_scene(*EMPTY, [sphere_object(metallic=1.0, roughness=0.05)], env_radiance=np.ones(3))
     fb = render(sc, camera(), np.ones((36, 48), bool), RenderSettings(spp=4, spp_min=4), np.random.default_rng(0))
     px = fb.pbr[_interior(fb)]
-    assert abs(px.mean() - 1.0) < 5e-3 and px.max() <= 1.0 + 1e-4
+    assert abs(px.mean() - 1.0) < TRACE_FURNACE_REL_TOL and px.max() <= 1.0 + 1e-4
 
 
 def test_lit_by_room_matches_albedo_times_radiance():
@@ -363,3 +365,33 @@ def test_published_mode_lights_an_object_from_above():
     top = fb.pbr[:12][_interior(fb)[:12]].mean()
     bottom = fb.pbr[-12:][_interior(fb)[-12:]].mean()
     assert top > 2 * bottom > 0  # lit from above, the bottom only by the room's bounce light
+
+
+def test_texture_and_vertex_colour_models_give_their_base_colour():
+    from pipeline.trace.scene import instance_from_model
+    from pipeline.types import ObjectModel
+
+    v, f, n = uv_sphere(0.5, n_lat=16, n_lon=32)
+    uv = np.c_[(np.arctan2(v[:, 1], v[:, 0]) / (2 * np.pi)) % 1.0, 0.5 * (v[:, 2] / 0.5 + 1)].astype(np.float32)
+    tex = np.zeros((8, 8, 3), np.uint8)
+    tex[:, :6] = (255, 0, 0)  # u < 0.75: red
+    tex[:, 6:] = (0, 0, 255)  # u >= 0.75: blue
+    textured = ObjectModel(obj_id=1, name="t", source_path="", vertices=v, faces=f, normals=n, vertex_colors=None,
+                           uv=uv, texture=tex)
+    coloured = ObjectModel(obj_id=2, name="c", source_path="", vertices=v, faces=f, normals=n,
+                           vertex_colors=np.full((len(v), 3), (188, 188, 0), np.uint8), uv=None, texture=None)
+    plain = ObjectModel(obj_id=3, name="p", source_path="", vertices=v, faces=f, normals=n, vertex_colors=None,
+                        uv=None, texture=None, base_color=(0.1, 0.2, 0.3))
+    s = RenderSettings(spp=4, spp_min=4, ao_samples=0)
+    for model, check in ((coloured, lambda a: np.allclose(a, [0.5, 0.5, 0.0], atol=3e-3)),
+                         (plain, lambda a: np.allclose(a, [0.1, 0.2, 0.3], atol=1e-6))):
+        sc = build_scene(*EMPTY, [instance_from_model(model, np.eye(3), np.zeros(3))], env_radiance=np.ones(3))
+        fb = render(sc, camera(), np.ones((36, 48), bool), s, np.random.default_rng(0))
+        assert all(check(a) for a in fb.albedo[_interior(fb)])
+    # the camera on -y sees the y < 0 half (u in [0.5, 1]): red and blue halves
+    sc = build_scene(*EMPTY, [instance_from_model(textured, np.eye(3), np.zeros(3))], env_radiance=np.ones(3))
+    fb = render(sc, camera(), np.ones((36, 48), bool), s, np.random.default_rng(0))
+    a = fb.albedo[_interior(fb)]
+    red = np.all(np.isclose(a, [1, 0, 0], atol=1e-6), axis=1)
+    blue = np.all(np.isclose(a, [0, 0, 1], atol=1e-6), axis=1)
+    assert red.sum() > 50 and blue.sum() > 50 and (red | blue).mean() > 0.8

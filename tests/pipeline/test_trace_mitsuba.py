@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.tolerances import TRACE_MITSUBA_REL_BIAS_MAX, TRACE_MITSUBA_REL_RMSE_MAX
 from pipeline.trace.pbr import Camera, RenderSettings, render
 from pipeline.trace.scene import ObjectInstance, build_scene
 from pipeline.trace.shapes import grid_quad, look_at, uv_sphere
@@ -23,8 +24,8 @@ W, H, F = 48, 36, 42.0
 SPP_OURS = 2048
 SPP_MITSUBA = 2048
 MAX_DEPTH = 8  # scattering events (Mitsuba's max_depth counts the camera segment too: + 1)
-REL_RMSE_MAX = 0.02   # the acceptance figure (noise of both renderers included)
-REL_BIAS_MAX = 0.005  # mean difference over object pixels: the systematic part alone
+REL_RMSE_MAX = TRACE_MITSUBA_REL_RMSE_MAX  # the figure (noise of both renderers included)
+REL_BIAS_MAX = TRACE_MITSUBA_REL_BIAS_MAX  # mean difference over object pixels: the systematic part
 
 
 def write_ply(path: Path, v: np.ndarray, f: np.ndarray, n: np.ndarray, c: np.ndarray) -> str:
