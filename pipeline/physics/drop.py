@@ -62,15 +62,31 @@ def gravity_frame(up: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(u, x), u])
 
 
-def room_bounds(room: dict, R_w2g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Bounds (lo, hi) (3,) of the room surface in the gravity frame (from grid nodes near the surface)."""
+def _surface_points(room: dict) -> np.ndarray:
     udf = np.asarray(room["udf"])
     sp = float(room["spacing"])
     ijk = np.argwhere(udf < 0.75 * sp)
     if len(ijk) == 0:
         raise ValueError("room proxy has no surface (udf never below the grid spacing)")
-    pts = np.asarray(room["origin"], float) + ijk * sp
-    g = pts @ R_w2g.T
+    return np.asarray(room["origin"], float) + ijk * sp
+
+
+def room_frame(room: dict, up: np.ndarray) -> np.ndarray:
+    """(3, 3) world -> room frame: z = up, x/y = principal horizontal axes of the room surface (so the
+    spawn box of a room whose walls are not aligned with the world axes stays inside the walls)."""
+    R = gravity_frame(up)
+    g = _surface_points(room) @ R.T
+    xy = g[:, :2] - g[:, :2].mean(0)
+    _, vecs = np.linalg.eigh(xy.T @ xy)
+    a = vecs[:, 1]
+    Rz = np.array([[a[0], a[1], 0.0], [-a[1], a[0], 0.0], [0.0, 0.0, 1.0]])
+    return Rz @ R
+
+
+def room_bounds(room: dict, R_w2g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds (lo, hi) (3,) of the room surface in the frame ``R_w2g`` (0.5 / 99.5 percentiles of the
+    grid nodes at the surface, so stray reconstruction blobs do not stretch them)."""
+    g = _surface_points(room) @ R_w2g.T
     return np.percentile(g, 0.5, axis=0), np.percentile(g, 99.5, axis=0)
 
 
@@ -81,15 +97,18 @@ def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 def spawn(bodies: list[Body], model: Model, up: np.ndarray, settings: DropSettings,
-          rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray
+          rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray, R_w2g: np.ndarray | None = None
           ) -> tuple[np.ndarray, np.ndarray] | None:
     """Non-overlapping random model-to-world poses in the spawn box, or None when none was found.
+
+    With a room, a spawn point must also be clear of the surface and have the room's surface somewhere
+    below it (not beside the room, where the spawn box of a non-rectangular room pokes out).
 
     Returns ``(R_m2w (N,3,3), t_m2w (N,3))``.
     """
     from pipeline.physics.collide import room_distance
 
-    R_w2g = gravity_frame(up)
+    R_w2g = gravity_frame(up) if R_w2g is None else R_w2g
     ext = hi - lo
     m = 0.5 * (1 - settings.spawn_xy)
     box_lo = np.array([lo[0] + m * ext[0], lo[1] + m * ext[1], lo[2] + settings.spawn_z[0] * ext[2]])
@@ -106,6 +125,10 @@ def spawn(bodies: list[Body], model: Model, up: np.ndarray, settings: DropSettin
             if model.has_room:
                 d, _ = room_distance(model, c[None], gradient=False)
                 if not d[0] > r + model.room_thickness + 0.005:
+                    continue
+                below = c[None] - np.outer(np.arange(0.0, 1.2 * ext[2], model.room_spacing), R_w2g[2])
+                db, _ = room_distance(model, below, gradient=False)
+                if not np.any(db < 1.5 * model.room_spacing):
                     continue
             com_w[i] = c
             break
@@ -142,13 +165,15 @@ def simulate_drop(bodies: list[Body], *, room: dict | None, up: np.ndarray, sett
     up = np.asarray(up, float) / np.linalg.norm(up)
     opt = Options(timestep=settings.timestep, gravity=tuple(-9.81 * up), friction=settings.friction)
     model = build_model(bodies, planes=planes, room=room, room_thickness=settings.room_thickness, opt=opt)
-    R_w2g = gravity_frame(up)
     if bounds is None:
         if room is None:
             raise ValueError("simulate_drop needs a room or explicit spawn bounds")
+        R_w2g = room_frame(room, up)
         bounds = room_bounds(room, R_w2g)
+    else:
+        R_w2g = gravity_frame(up)
     lo, hi = bounds
-    poses = spawn(bodies, model, up, settings, rng, lo, hi)
+    poses = spawn(bodies, model, up, settings, rng, lo, hi, R_w2g)
     N = len(bodies)
     if poses is None:
         return DropResult(np.repeat(np.eye(3)[None], N, 0), np.zeros((N, 3)), np.zeros(N, bool), 0.0,
