@@ -142,9 +142,7 @@ def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -
         warnings.simplefilter("always", IngestWarning)
         scan = read_scan(path, cfg.scan.format)
     notes = [str(w.message) for w in caught if issubclass(w.category, IngestWarning)]
-    for w in caught:  # re-issue so callers (and pytest) see them; also log them
-        if issubclass(w.category, IngestWarning):
-            log.warning("%s", w.message)
+    for w in caught:  # re-issue so callers (and pytest) see them; they are also kept in scan.json
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     n_read = scan.num_frames
     idx = subsample(n_read, cfg.scan.max_frames)

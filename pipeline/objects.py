@@ -28,6 +28,7 @@ import numpy as np
 
 from pipeline.errors import InputError
 from pipeline.scanformats.common import warn
+from pipeline.tolerances import OBJECT_DIAMETER_PLAUSIBLE_M
 from pipeline.types import ObjectModel
 
 log = logging.getLogger(__name__)
@@ -35,7 +36,6 @@ log = logging.getLogger(__name__)
 BUILTIN_SHAPES = "builtin:shapes"
 MODEL_EXTS = (".ply", ".obj", ".gltf", ".glb")
 BOP_RX = re.compile(r"obj_(\d{6})\.ply")
-PLAUSIBLE_DIAMETER_M = (0.005, 3.0)  # a graspable/placeable object is between 5 mm and 3 m across
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -187,7 +187,7 @@ def load_object_file(path: str | Path, *, obj_id: int, scale: float, unit_note: 
         vc = np.asarray(vis.face_colors_to_vertex_colors() if hasattr(vis, "face_colors_to_vertex_colors")
                         else vis.vertex_colors)[:, :3].astype(np.uint8)
     info = models_info(V)
-    lo, hi = PLAUSIBLE_DIAMETER_M
+    lo, hi = OBJECT_DIAMETER_PLAUSIBLE_M
     if not lo <= info["diameter"] <= hi:
         d_file = info["diameter"] / scale
         warn(f"{path}: object is {info['diameter']:.4g} m across with {unit_note} assumed ({d_file:.4g} file "

@@ -27,6 +27,15 @@ RASTER_DEPTH_MEDIAN_M = 1e-3
 # "textureless" and never used as a sharpness reference. 2 levels is just above 8-bit sensor noise.
 SELECT_TEXTURELESS_STD = 2.0
 
+# Ingest: a room mesh whose bounding box, grown by this margin, contains none of the camera centres is
+# in other units or another frame (cameras of a room scan are inside the room; the margin absorbs a
+# scan mesh that stops short of where the operator stood, e.g. an open side of the room).
+MESH_CAMERA_MARGIN_M = 0.5
+
+# Ingest: object models whose diameter falls outside this range (metres) after unit conversion get a
+# warning naming the assumed unit (a 1 mm or 10 m "object" almost always means a wrong unit).
+OBJECT_DIAMETER_PLAUSIBLE_M = (0.005, 3.0)
+
 # Path tracer (issue 9). White furnace: an albedo-1 surface in uniform unit radiance must render 1; the
 # issue's acceptance figure (0.5 %), loose enough for float32 shading and a few samples lost where an
 # interpolated normal sends a ray under its facet, tight enough to catch a missing cos/pi or pdf term.

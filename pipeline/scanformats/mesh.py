@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import InputError
+from pipeline.tolerances import MESH_CAMERA_MARGIN_M
 
 
 def ply_bytes(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None) -> bytes:
@@ -113,7 +114,7 @@ def load_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 
 def check_mesh_covers_cameras(vertices: np.ndarray, cam_pos: np.ndarray, path: str | Path,
-                              margin: float = 0.5) -> None:
+                              margin: float = MESH_CAMERA_MARGIN_M) -> None:
     """InputError when no camera lies within the mesh's bounding box grown by ``margin`` metres.
 
     A room scan's cameras are inside the room; a mesh far from them is in other units or another frame.

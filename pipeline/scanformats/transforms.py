@@ -92,9 +92,12 @@ def read(root: Path) -> Scan:
     for i, fr in enumerate(frames):
         if "file_path" not in fr or "transform_matrix" not in fr:
             raise InputError(f"{jpath}: frame {i} lacks 'file_path' or 'transform_matrix'; fix the file")
-        M = np.asarray(fr["transform_matrix"], dtype=np.float64)
+        try:
+            M = np.asarray(fr["transform_matrix"], dtype=np.float64)
+        except (TypeError, ValueError):
+            M = np.zeros(0)
         if M.shape != (4, 4):
-            raise InputError(f"{jpath}: frame {i} transform_matrix has shape {M.shape}, expected 4x4")
+            raise InputError(f"{jpath}: frame {i} transform_matrix is not a 4x4 list of numbers; fix the file")
         where = f"{jpath} (frame {i}, {fr['file_path']})"
         Tgl = check_pose(M, where)
         if Tgl is None:

@@ -507,3 +507,12 @@ def test_round_trip_synthscan_layouts(tmp_path, layout):
     else:
         up = s.up_w
     assert np.degrees(np.arccos(np.clip(up @ up_true, -1, 1))) < 1.0
+
+
+def test_transforms_malformed_matrix(tmp_path):
+    write_transforms(tmp_path, n=2, depth=False)
+    doc = json.loads((tmp_path / "transforms.json").read_text())
+    doc["frames"][1]["transform_matrix"] = [[1, 0, 0], ["a", 1, 0]]
+    (tmp_path / "transforms.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match="frame 1 transform_matrix is not a 4x4 list of numbers"):
+        read_scan(tmp_path)
