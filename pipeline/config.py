@@ -65,6 +65,8 @@ class RunConfig:
     """Run-wide settings."""
 
     seed: int = option(0, "root random seed; every stage, scene, drop and frame derives its own from it", min=0)
+    preset: str = option("default", "quality preset: sets defaults for sampling and detail (keys given "
+                         "explicitly win)", choices=("fast", "default", "high"))
     workers: int = option(1, "worker processes for per-item work; 0 = one per core", min=0)
     executor: str = option("local", "where items run", choices=("local", "ray"))
     ray_address: str = option("", "Ray cluster address to join (executor = 'ray'); empty = start a local one")
@@ -370,7 +372,26 @@ def build_config(raw: dict, *, base_dir: str | Path = ".") -> Config:
     if unknown:
         raise ConfigError(f"unknown table [{unknown[0]}]; valid tables: {', '.join(TABLES)}")
     base = Path(base_dir).resolve()
+    raw = _with_preset(raw)
     return Config(**{name: _build_table(name, TABLES[name], raw.get(name, {}), base) for name in TABLES})
+
+
+def _with_preset(raw: dict) -> dict:
+    """``raw`` layered over the defaults of its ``run.preset`` (explicit keys win)."""
+    from pipeline.presets import PRESETS
+
+    run = raw.get("run", {})
+    name = run.get("preset", "default") if isinstance(run, dict) else "default"
+    if name not in PRESETS:
+        raise ConfigError(f"run.preset = {name!r}: not a valid choice; valid: "
+                          f"{', '.join(map(repr, PRESETS))}")
+    merged = {table: dict(values) for table, values in PRESETS[name].items()}
+    for table, values in raw.items():
+        if isinstance(values, dict) and isinstance(merged.get(table), dict):
+            merged[table].update(values)
+        else:
+            merged[table] = values
+    return merged
 
 
 def parse_override(text: str) -> tuple[str, str, Any]:

@@ -77,3 +77,20 @@ def test_reference_lists_every_key():
         assert f"[{f.name}]" in ref
         for g in dataclasses.fields(getattr(Config(), f.name)):
             assert f"`{g.name}`" in ref
+
+
+def test_presets_set_defaults_and_explicit_keys_win(tmp_path):
+    from pipeline.presets import PRESETS
+
+    fast = build_config({"run": {"preset": "fast"}})
+    assert fast.trace.spp == PRESETS["fast"]["trace"]["spp"]
+    assert build_config({"run": {"preset": "fast"}, "trace": {"spp": 99}}).trace.spp == 99
+    assert build_config({}).trace == Config().trace
+    # Every preset names only real keys with valid values, and survives a dump/load round trip.
+    for name in PRESETS:
+        cfg = build_config({"run": {"preset": name}})
+        p = tmp_path / f"{name}.toml"
+        p.write_text(dump_config(cfg))
+        assert load_config(p) == cfg
+    with pytest.raises(ConfigError, match="run.preset"):
+        build_config({"run": {"preset": "ultra"}})
