@@ -17,8 +17,8 @@ STAGE_ORDER: tuple[str, ...] = ("ingest", "select", "prep", "simulate", "raster"
 _LOCATIONS: dict[str, str] = {
     "ingest": "pipeline.ingest:STAGE",
     "select": "pipeline.select:STAGE",
-    "prep": "placeholder:issue 5/7 (mesh preparation for physics and tracing)",
-    "simulate": "placeholder:issue 7 (physics)",
+    "prep": "pipeline.prep:STAGE",
+    "simulate": "pipeline.simulate:STAGE",
     "raster": "pipeline.raster:STAGE",
     "trace": "pipeline.trace.stage:STAGE",
     "composite": "pipeline.composite:STAGE",
