@@ -175,6 +175,30 @@ def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
     return cv2.dilate(mask.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
 
 
+def _fill_under_objects(sr: np.ndarray, objects: np.ndarray) -> np.ndarray:
+    """The shadow ratio with object pixels (where the tracer wrote 1) filled from the room around them.
+
+    The room under an object is hidden, but blurring the ratio to the photo's blur level would
+    otherwise bleed those 1s into the contact shadow beside the object (a bright rim). Filled by
+    normalised convolution over growing windows; 1 where no room pixel is near.
+    """
+    if not objects.any():
+        return sr
+    w = (~objects).astype(np.float32)
+    out = sr.copy()
+    todo = objects.copy()
+    for k in (5, 11, 23):
+        num = cv2.boxFilter(sr * w, -1, (k, k), normalize=False, borderType=cv2.BORDER_REFLECT)
+        den = cv2.boxFilter(w, -1, (k, k), normalize=False, borderType=cv2.BORDER_REFLECT)
+        ok = todo & (den > 0.5)
+        out[ok] = num[ok] / den[ok]
+        todo &= ~ok
+        if not todo.any():
+            break
+    out[todo] = 1.0
+    return out
+
+
 def composite_full(photo: np.ndarray, pbr: np.ndarray, coverage: np.ndarray, shadow_ratio: np.ndarray,
                    labels: np.ndarray, *, rng: np.random.Generator, gain: float = 1.0, soft_edges: bool = True,
                    shadows: bool = True, blur_sigma: float | None = None, noise_sigma: float | None = None,
@@ -229,6 +253,7 @@ def composite_full(photo: np.ndarray, pbr: np.ndarray, coverage: np.ndarray, sha
     if shadows:
         sr = np.nan_to_num(np.asarray(shadow_ratio, np.float32), nan=1.0, posinf=1.0, neginf=1.0)
         sr = np.clip(sr, 0.0, _SHADOW_RATIO_MAX)
+        sr = _fill_under_objects(sr, (alpha > 0) | mask)
     else:
         sr = np.ones(hw, np.float32)
 

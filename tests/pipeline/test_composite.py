@@ -401,3 +401,15 @@ def test_stage_on_the_trace_stages_real_output(tmp_path):
     far = np.ones(labels.shape, bool)
     far[max(0, np.nonzero(labels)[0].min() - 8):, :] = False   # rows well above the ball and its shadow
     assert np.array_equal(img[far], photo[far])
+
+
+def test_blurred_contact_shadow_has_no_bright_rim_at_the_object():
+    photo = np.full((H, W, 3), 200, np.uint8)
+    dark = float(cl.decode_u8(np.array([200], np.uint8))[0]) * 0.6   # the object is as dark as the shadow
+    pbr, cov, labels, sr = _frame(colour=(dark, dark, dark))
+    res = _full(photo, pbr, cov, sr, labels, blur_sigma=1.5)
+    yy, xx = np.mgrid[0:H, 0:W]
+    dist = np.hypot(xx - 40.0, yy - 30.0) - 12.0          # distance outside the disk's edge, pixels
+    near = (dist > 0.5) & (dist < 3.0) & (np.hypot(xx - 40.0, yy - 34.0) < 13.5)   # well inside the ring
+    shadowed = int(cl.encode_u8(np.float32(dark)))
+    assert near.any() and (np.abs(res.image[near].astype(int) - shadowed) <= 2).all()
