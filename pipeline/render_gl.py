@@ -34,7 +34,7 @@ from typing import Sequence
 
 import numpy as np
 
-from pipeline.gl import pyrender_module
+from pipeline.gl import offscreen_renderer, pyrender_module
 
 log = logging.getLogger(__name__)
 
@@ -77,40 +77,6 @@ def gl_intrinsics(K: np.ndarray, x0: int = 0, y0: int = 0) -> tuple[float, float
     return (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]) - x0 + 0.5, float(K[1, 2]) - y0 + 0.5)
 
 
-def _fix_program_cache(renderer) -> None:
-    """Make pyrender reuse its compiled shader programs under OSMesa.
-
-    pyrender keys its program cache on ``OpenGL.contextdata.getContext()``, which under OSMesa returns a
-    new Python object on every call: every render missed the cache, compiled and linked a fresh
-    program (a few ms of llvmpipe JIT, most of the cost of drawing a small object) and kept the old
-    one (memory grew with every frame). A view owns its context, so the context is dropped from the
-    key here.
-    """
-    import importlib
-
-    base = importlib.import_module("pyrender.shader_program").ShaderProgramCache
-    old = renderer._renderer._program_cache
-
-    class StableProgramCache(base):
-        def __init__(self):
-            super().__init__(shader_dir=old.shader_dir)
-            self._stable = {}
-
-        def get_program(self, vertex_shader, fragment_shader, geometry_shader=None, defines=None):
-            key = (vertex_shader, fragment_shader, geometry_shader, tuple(sorted((defines or {}).items())))
-            prog = self._stable.get(key)
-            if prog is None:
-                prog = self._stable[key] = super().get_program(vertex_shader, fragment_shader,
-                                                               geometry_shader, defines)
-            return prog
-
-        def clear(self):
-            super().clear()
-            self._stable = {}
-
-    renderer._renderer._program_cache = StableProgramCache()
-
-
 class _View:
     """One OffscreenRenderer (GL context) of a fixed viewport size, with its own uploaded meshes.
 
@@ -121,8 +87,7 @@ class _View:
 
     def __init__(self, pr, width: int, height: int, znear: float, zfar: float):
         self.pr = pr
-        self.renderer = pr.OffscreenRenderer(width, height)
-        _fix_program_cache(self.renderer)
+        self.renderer = offscreen_renderer(width, height)
         self.scene = pr.Scene(bg_color=(0.0, 0.0, 0.0, 0.0), ambient_light=(0.0, 0.0, 0.0))
         self.camera = pr.IntrinsicsCamera(1.0, 1.0, 0.0, 0.0, znear=znear, zfar=zfar)
         self.cam_node = self.scene.add(self.camera, pose=np.eye(4))

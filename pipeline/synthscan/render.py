@@ -20,6 +20,7 @@ from typing import Protocol
 import numpy as np
 
 from pipeline.errors import UserError
+from pipeline.gl import offscreen_renderer, pyrender_module
 from pipeline.synthscan.room import MeshData, Room
 
 log = logging.getLogger(__name__)
@@ -55,7 +56,7 @@ class RasterPhotoRenderer:
     """
 
     def __init__(self, room: Room, mesh: MeshData, vertex_radiance: np.ndarray) -> None:
-        from pipeline.gl import pyrender_module
+
 
         self._pr = pyrender_module()
         self._room, self._mesh, self._radiance = room, mesh, vertex_radiance
@@ -95,8 +96,7 @@ class RasterPhotoRenderer:
                                 indices=self._mesh.faces.astype(np.uint32), mode=4)
             depth_mesh = pr.Mesh([prim])
             scene.add(depth_mesh)
-            renderer = pr.OffscreenRenderer(width, height)
-            _stabilise_program_cache(pr, renderer)
+            renderer = offscreen_renderer(width, height)
             self._views[key] = [renderer, scene, None, depth_mesh, None]
         view = self._views[key]
         renderer, scene, meshes, depth_mesh, cam_node = view
@@ -131,35 +131,6 @@ class RasterPhotoRenderer:
         for view in self._views.values():
             view[0].delete()
         self._views.clear()
-
-
-def _stabilise_program_cache(pr, offscreen) -> None:
-    """Make pyrender reuse compiled shader programs under OSMesa.
-
-    pyrender 0.1.45 keys its shader cache on ``OpenGL.contextdata.getContext()``, which under OSMesa
-    returns a new pointer object on every call, so every draw of every frame recompiled (and leaked) its
-    program: most of a frame's time. Each OffscreenRenderer owns one context, so a per-renderer cache
-    keyed on the shader files and defines alone is correct.
-    """
-    base = pr.renderer.ShaderProgramCache
-
-    class _Cache(base):
-        def __init__(self, shader_dir=None):
-            super().__init__(shader_dir)
-            self._stable: dict = {}
-
-        def get_program(self, vertex_shader, fragment_shader, geometry_shader=None, defines=None):
-            key = (vertex_shader, fragment_shader, geometry_shader, tuple(sorted((defines or {}).items())))
-            if key not in self._stable:
-                self._stable[key] = super().get_program(vertex_shader, fragment_shader, geometry_shader, defines)
-            return self._stable[key]
-
-        def clear(self):
-            super().clear()
-            self._stable = {}
-
-    inner = offscreen._renderer
-    inner._program_cache = _Cache(inner._program_cache.shader_dir)
 
 
 def make_photo_renderer(mode: str, room: Room, mesh: MeshData, vertex_radiance: np.ndarray) -> PhotoRenderer:
