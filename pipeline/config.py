@@ -209,9 +209,13 @@ class TraceConfig:
     env_radiance: float = option(-1.0, "radiance of rays escaping through holes in the scan; negative = the "
                                  "room's mean radiance")
     published_power: float = option(1.0, "published lighting: radiance of a white floor at the room centre")
-    shadow_samples: int = option(32, "shadow-ratio hemisphere rays per room point (0 = no shadow pass)", min=0)
-    shadow_min_effect: float = option(0.005, "shadow ratio traced only where objects can change the light by "
+    shadow_samples: int = option(16, "shadow-ratio hemisphere rays per room point (0 = no shadow pass)", min=0)
+    shadow_min_effect: float = option(0.02, "shadow ratio traced only where objects can change the light by "
                                       "more than this share", min=0.0, min_exclusive=True, max=1.0)
+    shadow_stride: int = option(2, "shadow ratio traced on every n-th pixel in x and y, then interpolated",
+                                min=1)
+    shadow_smooth: float = option(1.0, "Gaussian smoothing of the shadow ratio (sigma, traced-grid pixels; "
+                                  "0 = none)", min=0.0)
     denoise: str = option("auto", "denoise the PBR pass: oidn = Intel Open Image Denoise (pyoidn), bilateral = "
                           "joint bilateral filter, auto = oidn when installed", choices=("off", "auto", "oidn",
                                                                                          "bilateral"))

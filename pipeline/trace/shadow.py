@@ -51,8 +51,9 @@ def split_intersectors(scene: TraceScene) -> tuple[Intersector, Intersector]:
 
 
 def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.random.Generator, *,
-                 samples: int = 32, min_effect: float = 0.005, eps: float = 1e-4,
-                 room_isect: Intersector | None = None, obj_isect: Intersector | None = None) -> np.ndarray:
+                 samples: int = 32, min_effect: float = 0.02, stride: int = 1, smooth: float = 0.0,
+                 eps: float = 1e-4, room_isect: Intersector | None = None,
+                 obj_isect: Intersector | None = None) -> np.ndarray:
     """Shadow ratio per pixel, (H, W) float32; 1 on object pixels and wherever nothing changes.
 
     Parameters
@@ -62,6 +63,8 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
     labels : (H, W) uint16 object labels (0 = room); labelled pixels are not room pixels
     samples : hemisphere rays per traced room point
     min_effect : smallest possible change worth tracing (see the module docstring)
+    stride : trace one pixel in ``stride x stride`` and interpolate bilinearly (shadows are smooth)
+    smooth : Gaussian blur (sigma, in traced-grid pixels) of the ratio before upsampling; 0 = none
     room_isect, obj_isect : prebuilt intersectors of :func:`split_intersectors` (built when None)
     """
     H, W = camera.height, camera.width
@@ -70,7 +73,9 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
         return out.reshape(H, W)
     if room_isect is None or obj_isect is None:
         room_isect, obj_isect = split_intersectors(scene)
-    pix = np.flatnonzero(np.asarray(labels).ravel() == 0)
+    grid = np.zeros((H, W), bool)
+    grid[::stride, ::stride] = True
+    pix = np.flatnonzero((np.asarray(labels) == 0).ravel() & grid.ravel())
     o, d = primary_rays(camera, pix, np.full((pix.size, 2), 0.5))
     h = scene.intersector.intersect(o, d)
     room_hit = h.hit & (scene.tri_inst[np.maximum(h.prim, 0)] == 0)
@@ -135,4 +140,16 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
     ratio = np.where(E0 > 0, E1 / np.where(E0 > 0, E0, 1.0), 1.0)
     out[pix] = np.clip(ratio, 0.0, 2.0)
     log.debug("shadow ratio: %d room points traced, %d rays", n, pr.size)
-    return out.reshape(H, W)
+    out = out.reshape(H, W)
+    if stride == 1 and smooth <= 0:
+        return out
+    coarse = out[::stride, ::stride]
+    from scipy import ndimage
+
+    if smooth > 0:
+        coarse = 1.0 + ndimage.gaussian_filter(coarse - 1.0, smooth, mode="constant")
+    # coarse sample (i, j) sits at pixel (i stride, j stride): interpolate at exactly those coordinates
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32) / np.float32(stride)
+    up = ndimage.map_coordinates(coarse, [yy, xx], order=1, mode="nearest")
+    up[np.asarray(labels) > 0] = 1.0
+    return up.astype(np.float32)

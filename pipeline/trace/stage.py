@@ -116,7 +116,8 @@ def trace_frame(ctx: StageContext, scene, scene_name: str, drop: int, frame: int
     if cfg.denoise != "off":
         pbr = denoise(fb.pbr, fb.albedo, fb.normal, fb.coverage > 0, method=cfg.denoise)
     sr = (shadow_ratio(scene, cam, labels, rng, samples=cfg.shadow_samples, min_effect=cfg.shadow_min_effect,
-                       room_isect=room_isect, obj_isect=obj_isect)
+                       stride=cfg.shadow_stride, smooth=cfg.shadow_smooth, room_isect=room_isect,
+                       obj_isect=obj_isect)
           if cfg.shadow_samples > 0 else np.ones(labels.shape, np.float32))
     atomic_save_npz(output_path(ctx.run_dir, scene_name, drop, frame), pbr=pbr.astype(np.float32),
                     ao=fb.ao, coverage=fb.coverage, shadow_ratio=sr, albedo=fb.albedo, normal=fb.normal,
