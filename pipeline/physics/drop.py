@@ -38,6 +38,8 @@ class DropSettings:
     room_thickness: float = 0.01           # m, half-thickness of the scan surface shell
     friction: float = 0.5                  # Coulomb coefficient
     spawn_tries: int = 200                 # samples per body before giving up
+    floor_plane: bool = True               # a static plane at the scan's floor catches bodies that fall
+    #                                        through holes of the scanned floor (real scans have many)
 
 
 @dataclass(frozen=True)
@@ -83,6 +85,16 @@ def room_frame(room: dict, up: np.ndarray) -> np.ndarray:
     return Rz @ R
 
 
+def floor_height(room: dict, R_w2g: np.ndarray) -> float:
+    """Height (along the frame's z = up) of the floor: the most populated 1 cm height bin of the room
+    surface among its lowest 30 % (the floor is the largest horizontal surface at the bottom)."""
+    z = (_surface_points(room) @ R_w2g.T)[:, 2]
+    low = z[z <= np.percentile(z, 30)]
+    bins = np.arange(low.min(), low.max() + 0.02, 0.01)
+    h, e = np.histogram(low, bins=bins)
+    return float(e[np.argmax(h)] + 0.005)
+
+
 def room_bounds(room: dict, R_w2g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Bounds (lo, hi) (3,) of the room surface in the frame ``R_w2g`` (0.5 / 99.5 percentiles of the
     grid nodes at the surface, so stray reconstruction blobs do not stretch them)."""
@@ -126,9 +138,13 @@ def spawn(bodies: list[Body], model: Model, up: np.ndarray, settings: DropSettin
                 d, _ = room_distance(model, c[None], gradient=False)
                 if not d[0] > r + model.room_thickness + 0.005:
                     continue
-                below = c[None] - np.outer(np.arange(0.0, 1.2 * ext[2], model.room_spacing), R_w2g[2])
+                # surface below the whole footprint (centre and four points a bound radius out):
+                # scans have holes, and a body dropped over one leaves the room
+                feet = c + np.array([[0, 0], [r, 0], [-r, 0], [0, r], [0, -r]]) @ R_w2g[:2]
+                drop_line = np.arange(0.0, 1.2 * ext[2], model.room_spacing)
+                below = feet[:, None, :] - drop_line[None, :, None] * R_w2g[2]
                 db, _ = room_distance(model, below, gradient=False)
-                if not np.any(db < 1.5 * model.room_spacing):
+                if not np.all(np.any(db < 1.5 * model.room_spacing, axis=1)):
                     continue
             com_w[i] = c
             break
@@ -164,14 +180,18 @@ def simulate_drop(bodies: list[Body], *, room: dict | None, up: np.ndarray, sett
     """
     up = np.asarray(up, float) / np.linalg.norm(up)
     opt = Options(timestep=settings.timestep, gravity=tuple(-9.81 * up), friction=settings.friction)
-    model = build_model(bodies, planes=planes, room=room, room_thickness=settings.room_thickness, opt=opt)
     if bounds is None:
         if room is None:
             raise ValueError("simulate_drop needs a room or explicit spawn bounds")
         R_w2g = room_frame(room, up)
         bounds = room_bounds(room, R_w2g)
+        if settings.floor_plane:
+            # the shell's outer face (room_thickness above the floor) is where bodies rest elsewhere
+            fl = np.array([[*up, floor_height(room, R_w2g) + settings.room_thickness]])
+            planes = fl if planes is None else np.concatenate([np.asarray(planes, float).reshape(-1, 4), fl])
     else:
         R_w2g = gravity_frame(up)
+    model = build_model(bodies, planes=planes, room=room, room_thickness=settings.room_thickness, opt=opt)
     lo, hi = bounds
     poses = spawn(bodies, model, up, settings, rng, lo, hi, R_w2g)
     N = len(bodies)
@@ -191,19 +211,24 @@ def simulate_drop(bodies: list[Body], *, room: dict | None, up: np.ndarray, sett
         axes /= np.linalg.norm(axes, axis=1, keepdims=True)
         ang[kick] = axes * rng.uniform(0, settings.max_spin, (k, 1))
     state = make_state(model, R0, t0, vel=vel, angvel=ang)
-    return run(model, state, settings, R_w2g=R_w2g, floor=lo[2])
+    return run(model, state, settings, R_w2g=R_w2g, floor=lo[2], lo=lo, hi=hi)
 
 
-def left_room(model: Model, state: State, R_w2g: np.ndarray, floor: float) -> np.ndarray:
-    """(N,) bool: body centres outside the room grid or more than 0.5 m below the room's floor."""
-    out = (state.pos @ R_w2g.T)[:, 2] < floor - 0.5
+def left_room(model: Model, state: State, R_w2g: np.ndarray, floor: float,
+              lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> np.ndarray:
+    """(N,) bool: body centres outside the room grid, more than 0.5 m below the room's floor, or (with
+    ``lo``/``hi``, room-frame bounds) outside the room's horizontal extent."""
+    g = state.pos @ R_w2g.T
+    out = g[:, 2] < floor - 0.5
+    if lo is not None:
+        out |= np.any((g[:, :2] < lo[:2]) | (g[:, :2] > hi[:2]), axis=1)
     if model.has_room:
         out |= np.any((state.pos < model.room_origin) | (state.pos > model.room_upper), axis=1)
     return out
 
 
 def run(model: Model, state: State, settings: DropSettings, *, R_w2g: np.ndarray | None = None,
-        floor: float = -np.inf) -> DropResult:
+        floor: float = -np.inf, lo: np.ndarray | None = None, hi: np.ndarray | None = None) -> DropResult:
     """Step until every body sleeps, a body leaves the room, or ``settings.max_time``."""
     R_w2g = np.eye(3) if R_w2g is None else R_w2g
     nsteps = int(round(settings.max_time / model.opt.timestep))
@@ -211,12 +236,12 @@ def run(model: Model, state: State, settings: DropSettings, *, R_w2g: np.ndarray
     k = 0
     for k in range(1, nsteps + 1):
         state = step(model, state)
-        if k % 10 == 0 and np.any(left_room(model, state, R_w2g, floor)):
+        if k % 10 == 0 and np.any(left_room(model, state, R_w2g, floor, lo, hi)):
             verdict = "rejected:left-room"
             break
         if np.all(state.asleep):
             break
-    if verdict == "accepted" and np.any(left_room(model, state, R_w2g, floor)):
+    if verdict == "accepted" and np.any(left_room(model, state, R_w2g, floor, lo, hi)):
         verdict = "rejected:left-room"
     pen = penetration(model, state)
     if verdict == "accepted" and not np.all(state.asleep):

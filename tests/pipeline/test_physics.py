@@ -347,10 +347,26 @@ def test_drop_into_room_settles_inside_and_is_deterministic():
 
 
 def test_drop_through_a_hole_is_rejected_as_left_room():
-    room = _box_room(hole=(0.0, 2.0, 0.0, 2.0))   # no floor at all
+    room = _box_room(hole=(0.5, 1.5, 0.5, 1.5))
+    m = build_model([box_body([0.05] * 3, 0.3)], room=room)
+    s = make_state(m, np.eye(3)[None], [[1.0, 1.0, 1.0]])        # above the hole
+    r = run(m, s, DropSettings(), R_w2g=np.eye(3), floor=0.0)
+    assert r.verdict == "rejected:left-room"
+
+
+def test_room_without_floor_gives_no_spawn_pose():
+    room = _box_room(hole=(0.0, 2.0, 0.0, 2.0))   # no floor at all: nothing to land on anywhere
+    r = simulate_drop(_pile_bodies(3), room=room, up=np.array([0, 0, 1.0]),
+                      settings=DropSettings(floor_plane=False), rng=np.random.default_rng(1))
+    assert r.verdict == "rejected:spawn"
+
+
+def test_floor_plane_catches_bodies_over_holes_in_the_scanned_floor():
+    room = _box_room(hole=(0.3, 1.7, 0.3, 1.7))   # most of the floor unscanned
     r = simulate_drop(_pile_bodies(3), room=room, up=np.array([0, 0, 1.0]), settings=DropSettings(),
                       rng=np.random.default_rng(1))
-    assert r.verdict == "rejected:left-room"
+    assert r.verdict == "accepted"
+    assert np.all(np.abs(r.t_m2w[:, 2]) < 0.15)     # resting at the floor's height
 
 
 def test_drop_that_cannot_settle_in_time_is_rejected():
