@@ -55,6 +55,23 @@ def test_shadow_ratio_under_a_sphere_matches_the_blocked_solid_angle(albedo):
     assert sr[y, x] == pytest.approx(1 - (1 - albedo) * share, abs=0.01)
 
 
+def test_shadow_ratio_counts_overlapping_cones_once():
+    """A second sphere hidden behind the first (its cone inside the first's) changes nothing."""
+    sc1, cam = _shadow_scene(0.0)
+    v, f, n = uv_sphere(0.4, (0, 0, 2.0), n_lat=24, n_lon=48)
+    far = ObjectInstance(vertices=v, faces=f, normals=n, albedo=np.zeros((len(v), 3), np.float32))
+    v1, f1, n1 = uv_sphere(0.3, (0, 0, 1.0), n_lat=24, n_lon=48)
+    near = ObjectInstance(vertices=v1, faces=f1, normals=n1, albedo=np.zeros((len(v1), 3), np.float32))
+    nr = sc1.num_room_tris
+    sc = build_scene(sc1.vertices[: sc1.faces[:nr].max() + 1], sc1.faces[:nr], None, [near, far],
+                     room_linear_radiance=np.ones((sc1.faces[:nr].max() + 1, 3)))
+    y, x = _pixel_of(cam, (0, 0, 0))
+    labels = np.ones((48, 64), np.uint16)
+    labels[y, x] = 0
+    sr = shadow_ratio(sc, cam, labels, np.random.default_rng(0), samples=20_000)
+    assert sr[y, x] == pytest.approx(1 - 0.09, abs=0.01)
+
+
 def test_shadow_ratio_is_one_far_away_and_without_objects():
     sc, cam = _shadow_scene(0.0)
     labels = np.zeros((48, 64), np.uint16)
