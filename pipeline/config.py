@@ -216,6 +216,9 @@ class TraceConfig:
                                 min=1)
     shadow_smooth: float = option(1.0, "Gaussian smoothing of the shadow ratio (sigma, traced-grid pixels; "
                                   "0 = none)", min=0.0)
+    room_mesh: str = option("prep", "room mesh traced: prep = RUN/prep/<scene>/room_trace.ply when present "
+                            "(simplified by geometry only: flat coloured detail such as windows may merge), "
+                            "ingest = the full reconstructed mesh", choices=("prep", "ingest"))
     denoise: str = option("auto", "denoise the PBR pass: oidn = Intel Open Image Denoise (pyoidn), bilateral = "
                           "joint bilateral filter, auto = oidn when installed", choices=("off", "auto", "oidn",
                                                                                          "bilateral"))

@@ -88,8 +88,8 @@ def build_area_lights(vertices: np.ndarray, faces: np.ndarray, emission: np.ndar
     return AreaLights(tri=tri, cdf=np.cumsum(prob), prob=prob, area=area, prob_of_tri=prob_of_tri)
 
 
-def sample_area_lights(lights: AreaLights, vertices: np.ndarray, faces: np.ndarray,
-                       u0: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def sample_area_lights(lights: AreaLights, vertices: np.ndarray, faces: np.ndarray, u0: np.ndarray,
+                       u1: np.ndarray, u2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Points on the area lights, chosen by power then uniformly by area.
 
     Returns

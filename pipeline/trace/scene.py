@@ -17,6 +17,7 @@ import numpy as np
 from pipeline.trace.intersect import EmbreeIntersector, Intersector
 from pipeline.trace.lights import (AreaLights, PointLights, build_area_lights, detect_bright_triangles,
                                    mean_radiance, published_lights, srgb_to_linear)
+from pipeline.types import ObjectModel
 
 log = logging.getLogger(__name__)
 
@@ -74,8 +75,15 @@ class ObjectInstance:
     specular: float = 1.0
 
 
-def instance_from_model(model, R_m2w: np.ndarray, t_m2w: np.ndarray) -> ObjectInstance:
-    """An :class:`ObjectInstance` from a :class:`pipeline.types.ObjectModel` and its pose."""
+def instance_from_model(model: ObjectModel, R_m2w: np.ndarray, t_m2w: np.ndarray) -> ObjectInstance:
+    """An :class:`ObjectInstance` from a library model and its pose.
+
+    Parameters
+    ----------
+    model : the object model (vertex colours, UV texture or a plain base colour; metallic, roughness)
+    R_m2w : (3, 3) float model-to-world rotation
+    t_m2w : (3,) float model-to-world translation, metres
+    """
     R = np.asarray(R_m2w, np.float64)
     v = np.asarray(model.vertices, np.float64) @ R.T + np.asarray(t_m2w, np.float64)
     n = np.asarray(model.normals, np.float64) @ R.T

@@ -54,10 +54,11 @@ def settings_from_config(cfg: TraceConfig):
                           ao_distance=cfg.ao_distance)
 
 
-def room_mesh_path(run_dir: Path, scan) -> str:
-    """The room mesh to trace: prep's ``room_trace.ply`` when present, else the ingest mesh."""
+def room_mesh_path(run_dir: Path, scan, which: str = "prep") -> str:
+    """The room mesh to trace: prep's ``room_trace.ply`` when present (``which = "prep"``), else the
+    ingest mesh."""
     p = run_dir / "prep" / scan.name / "room_trace.ply"
-    return str(p) if p.is_file() else scan.mesh_path
+    return str(p) if which == "prep" and p.is_file() else scan.mesh_path
 
 
 def plan(ctx: StageContext) -> list[Item]:
@@ -141,7 +142,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     raster_dir = ctx.run_dir / "raster" / scene_name / f"drop{drop:04d}"
     scan = load_scan(ctx.run_dir, scene_name)
     library = {o.obj_id: o for o in load_objects(ctx.run_dir)}
-    rv, rf, rc = read_room_ply(room_mesh_path(ctx.run_dir, scan))
+    rv, rf, rc = read_room_ply(room_mesh_path(ctx.run_dir, scan, cfg.room_mesh))
     env = None if cfg.env_radiance < 0 else np.full(3, cfg.env_radiance, np.float32)
     scene = None
     split = (None, None)

@@ -220,6 +220,7 @@ def test_stage_prefers_preps_room_trace_mesh(tmp_path):
     rv, rf = box_room((-2, -2, 0), (2, 2, 2.5), n=2)
     atomic_write_bytes(run / "prep/room/room_trace.ply", ply_bytes(rv, rf, np.zeros((len(rv), 3), np.uint8)))
     assert room_mesh_path(run, scan) == str(run / "prep/room/room_trace.ply")
+    assert room_mesh_path(run, scan, "ingest") == scan.mesh_path
     ctx = _ctx(run, spp=4, shadow_samples=0, ao_samples=0, env_radiance=0.0, denoise="off")
     STAGE.run_item(ctx, STAGE.plan(ctx)[0])
     a = load_npz(run / "trace/room/drop0000/f000000.npz")
