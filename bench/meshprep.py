@@ -95,6 +95,48 @@ def simplify_sweep(src: Path, work: Path, name: str) -> tuple[list[dict], list[d
     return ours, base
 
 
+def _tree_rss_bytes(pid: int) -> int:
+    """Resident memory of a process and all its descendants (Linux /proc)."""
+    total = 0
+    stack = [pid]
+    while stack:
+        p = stack.pop()
+        try:
+            with open(f"/proc/{p}/statm") as fh:
+                total += int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+            for task in os.listdir(f"/proc/{p}/task"):
+                with open(f"/proc/{p}/task/{task}/children") as fh:
+                    stack += [int(c) for c in fh.read().split()]
+        except (OSError, ValueError):
+            continue
+    return total
+
+
+class TreeRssSampler:
+    """Peak resident memory of this process tree, sampled every 50 ms in a thread (ru_maxrss of
+    spawned workers is useless: it includes the parent's pages at fork time)."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self.peak = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.peak = max(self.peak, _tree_rss_bytes(os.getpid()))
+            self._stop.wait(0.05)
+
+    def __enter__(self) -> "TreeRssSampler":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
 def child_2m(work: str) -> None:
     """Child process: generate, write, then repair + simplify a 2M-face mesh; print JSON."""
     from meshprep.repair import repair
@@ -107,16 +149,17 @@ def child_2m(work: str) -> None:
     n_faces = int(len(f))
     del v, f
     rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    t0, c0 = time.perf_counter(), time.process_time()
-    rr = repair(src, Path(work) / "big_r.ply", self_intersections=False)
-    t1, c1 = time.perf_counter(), time.process_time()
-    rs = simplify(Path(work) / "big_r.ply", Path(work) / "big_s.ply",
-                  target_faces=rr["after"]["faces"] // 10, samples=SAMPLES)
-    t2, c2 = time.perf_counter(), time.process_time()
+    with TreeRssSampler() as mem:
+        t0, c0 = time.perf_counter(), time.process_time()
+        rr = repair(src, Path(work) / "big_r.ply", self_intersections=False)
+        t1, c1 = time.perf_counter(), time.process_time()
+        rs = simplify(Path(work) / "big_r.ply", Path(work) / "big_s.ply",
+                      target_faces=rr["after"]["faces"] // 10, samples=SAMPLES)
+        t2, c2 = time.perf_counter(), time.process_time()
     kids = resource.getrusage(resource.RUSAGE_CHILDREN)
     print(json.dumps({
         "children_cpu_s": kids.ru_utime + kids.ru_stime,
-        "children_peak_rss_gb": kids.ru_maxrss * 1024 / 1e9,
+        "peak_tree_rss_gb": mem.peak / 1e9,
         "faces_in": n_faces, "faces_repaired": rr["after"]["faces"], "faces_out": rs["after"]["faces"],
         "kind": rr["kind"], "repair_wall_s": t1 - t0, "simplify_wall_s": t2 - t1,
         "total_wall_s": t2 - t0, "total_cpu_s": c2 - c0 + kids.ru_utime + kids.ru_stime, "repair_cpu_s": c1 - c0,
@@ -241,13 +284,16 @@ def main() -> int:
             res.notes.append(f"2M child failed: {out.stderr[-2000:]}")
         else:
             big = json.loads(out.stdout.strip().splitlines()[-1])
+            peak = max(big["peak_rss_gb"], big["peak_tree_rss_gb"])
+            # What the run would take with the 2 cores to itself: the single-threaded parts' CPU
+            # time plus half of the two slab workers' CPU time.
+            big["estimated_wall_2_free_cores_s"] = (big["total_cpu_s"] - big["children_cpu_s"]
+                                                    + big["children_cpu_s"] / 2)
             res.figures["two_million"] = big
-            # Memory: the parent's peak plus the largest slab worker's (both workers run at once,
-            # so twice the worker peak is the conservative bound used here).
-            big["peak_rss_upper_bound_gb"] = big["peak_rss_gb"] + 2 * big["children_peak_rss_gb"]
-            res.figures["two_million"] = big
-            res.figures["two_million_target_met"] = bool(big["total_wall_s"] <= 60
-                                                         and big["peak_rss_upper_bound_gb"] <= 4)
+            res.figures["two_million_memory_target_met"] = bool(peak <= 4)
+            res.figures["two_million_time_target_met_wall"] = bool(big["total_wall_s"] <= 60)
+            res.figures["two_million_time_target_met_2_free_cores_estimate"] = bool(
+                big["estimated_wall_2_free_cores_s"] <= 60)
     res.figures["mass_properties"] = mass_check()
     res.figures["mass_properties_max_rel_err"] = max(
         max(x["volume_rel_err"], x["inertia_rel_err"]) for x in res.figures["mass_properties"].values())

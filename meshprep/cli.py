@@ -61,6 +61,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="deviation statistic bounded by --max-error (default max)")
     s.add_argument("--no-preserve-boundary", action="store_true", help="let open borders move")
     s.add_argument("--seed", type=int, default=0, help="seed of the deviation sampling")
+    s.add_argument("--workers", type=int, default=None,
+                   help=f"decimation processes (default: 2 for meshes of "
+                        f"{constants.PARALLEL_MIN_FACES:,}+ faces without UVs, else 1)")
     s.add_argument("--report", help="JSON report path (default OUTPUT.report.json)")
 
     s = sub.add_parser("solid", help="closed manifold solid with volume, com and inertia",
@@ -135,7 +138,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             rep = simplify(args.input, args.output, target_faces=args.target_faces,
                            max_error=args.max_error, relative=args.relative,
                            error_stat=args.error_stat, preserve_boundary=not args.no_preserve_boundary,
-                           seed=args.seed, report=args.report)
+                           seed=args.seed, workers=args.workers, report=args.report)
             d = rep["deviation"]
             sys.stdout.write(f"{args.output}: {rep['before']['faces']} -> {rep['after']['faces']} "
                              f"faces, deviation mean {d['mean_rel']:.3%} p95 {d['p95_rel']:.3%} "

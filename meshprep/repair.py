@@ -96,12 +96,12 @@ def _remove_junk(ms: "pymeshlab.MeshSet", log_: list[dict], junk_diag_rel: float
         return
     diag = float(np.linalg.norm(v.max(0) - v.min(0)))
     sizes = np.bincount(lab, minlength=n)
-    lo = np.full((n, 3), np.inf)
-    hi = np.full((n, 3), -np.inf)
-    for k in range(3):
-        for fk in range(3):
-            np.minimum.at(lo[:, k], lab, v[f[:, fk], k])
-            np.maximum.at(hi[:, k], lab, v[f[:, fk], k])
+    order = np.argsort(lab, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    corners = v[f[order]]                                  # (F, 3 corners, 3 xyz), by component
+    lo = np.minimum.reduceat(corners.min(axis=1), starts, axis=0)
+    hi = np.maximum.reduceat(corners.max(axis=1), starts, axis=0)
+    del corners
     cdiag = np.linalg.norm(hi - lo, axis=1)
     # Few faces alone is junk only when tiny next to the whole (a 2-triangle mesh keeps both).
     junk = (cdiag < junk_diag_rel * diag) | ((sizes < junk_faces) & (sizes < 0.01 * len(f)))
