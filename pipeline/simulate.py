@@ -22,6 +22,11 @@ from pipeline.types import Placement
 log = logging.getLogger(__name__)
 
 
+FOCUS_MIN_HALF_WIDTH = 0.25   # m, smallest half-width of a view-focused spawn square
+FOCUS_SPREAD = 1.2            # half-width = this x sqrt(objects) x median bounding radius (room to fall apart)
+FOCUS_TRIES = 3               # focus cells tried before falling back to the whole-room spawn box
+
+
 def placement_path(run_dir: str | Path, scene: str, drop: int) -> Path:
     return Path(run_dir) / "simulate" / scene / f"drop{drop:04d}.json"
 
@@ -76,8 +81,12 @@ def body_of(proxy: dict[str, np.ndarray], friction: float):
 
 
 def simulate(cfg: SimulateConfig, *, scene: str, drop: int, room: dict, up: np.ndarray,
-             proxies: dict[int, dict], rng: np.random.Generator) -> tuple[Placement, dict]:
+             proxies: dict[int, dict], rng: np.random.Generator, view=None) -> tuple[Placement, dict]:
     """One drop: sample objects, spawn them above the room and simulate them to rest.
+
+    With ``view`` (a :class:`pipeline.view_spawn.ViewMap` of the kept frames) the spawn box is a square
+    above a horizontal surface the kept frames see (sampled by their votes; a few tries, then the whole
+    room), so the objects come to rest in view; without it, the published whole-room spawn box.
 
     Parameters
     ----------
@@ -108,10 +117,32 @@ def simulate(cfg: SimulateConfig, *, scene: str, drop: int, room: dict, up: np.n
     st = DropSettings(timestep=cfg.timestep, max_time=cfg.max_time, p_velocity=cfg.p_velocity,
                       friction=cfg.friction, room_thickness=cfg.room_thickness,
                       max_penetration=cfg.max_penetration)
-    r = simulate_drop(bodies, room=room, up=up, settings=st, rng=rng)
+    facts: dict = {}
+    r = None
+    if view is not None and len(view.score):
+        from dataclasses import replace
+
+        from pipeline.physics.drop import room_bounds
+        from pipeline.view_spawn import focus_bounds, sample_focus
+
+        room_lo, room_hi = room_bounds(room, view.R_w2g)    # view.R_w2g is the room frame
+        radii = [float(np.max(np.linalg.norm(np.asarray(proxies[int(i)]["hull_vertices"], float)
+                                             - np.asarray(proxies[int(i)]["com"], float), axis=1)))
+                 for i in chosen]
+        half = max(FOCUS_MIN_HALF_WIDTH, FOCUS_SPREAD * np.sqrt(n) * float(np.median(radii)))
+        for _ in range(FOCUS_TRIES):
+            c = sample_focus(view, rng)
+            r = simulate_drop(bodies, room=room, up=up, settings=replace(st, spawn_xy=1.0), rng=rng,
+                              spawn_bounds=focus_bounds(c, half, room_lo, room_hi))
+            if r.verdict != "rejected:spawn":
+                facts = {"focus_xy": [round(float(v), 6) for v in c], "focus_half_width": round(half, 6)}
+                break
+            r = None
+    if r is None:
+        r = simulate_drop(bodies, room=room, up=up, settings=st, rng=rng)
     pl = Placement(scene=scene, drop=drop, obj_ids=chosen.astype(np.int32), R_m2w=r.R_m2w, t_m2w=r.t_m2w,
                    at_rest=r.at_rest, max_penetration=r.max_penetration, verdict=r.verdict)
-    return pl, {"seconds": round(r.sim_time, 6), "steps": r.steps}
+    return pl, {"seconds": round(r.sim_time, 6), "steps": r.steps, **facts}
 
 
 def plan(ctx: StageContext) -> list[Item]:
@@ -132,12 +163,31 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     if not proxies:
         raise InputError("the object library is empty; give objects.paths in the config")
     pl, facts = simulate(ctx.cfg.simulate, scene=scene, drop=drop, room=room, up=scan.up_w,
-                         proxies=proxies, rng=ctx.rng(item))
+                         proxies=proxies, rng=ctx.rng(item), view=_view_map(ctx.run_dir, scan, room))
     save_placement(placement_path(ctx.run_dir, scene, drop), pl, extra=facts)
     if pl.verdict != "accepted":
         log.info("%s: %s", item.key, pl.verdict)
     return {"verdict": pl.verdict, "max_penetration": pl.max_penetration,
             "asleep": int(np.sum(pl.at_rest)), "objects": len(pl.obj_ids), **facts}
+
+
+def _view_map(run_dir: Path, scan, room: dict):
+    """Votes of the scene's kept frames for spawn cells in the room frame of
+    :func:`pipeline.physics.drop.room_frame` (None when nothing was selected or seen)."""
+    from pipeline.physics.drop import room_frame
+    from pipeline.select import load_selection
+    from pipeline.view_spawn import view_map
+
+    try:
+        frames = load_selection(run_dir, scan.name)
+    except UserError:
+        return None
+    vm = view_map(scan, frames, room_frame(room, scan.up_w))
+    if not len(vm.score):
+        log.warning("%s: no kept frame sees an upward-facing surface; drops spawn over the whole room",
+                    scan.name)
+        return None
+    return vm
 
 
 def finish(ctx: StageContext, results: dict[str, dict]) -> None:

@@ -158,7 +158,8 @@ def spawn(bodies: list[Body], model: Model, up: np.ndarray, settings: DropSettin
 
 def simulate_drop(bodies: list[Body], *, room: dict | None, up: np.ndarray, settings: DropSettings,
                   rng: np.random.Generator, planes: np.ndarray | None = None,
-                  bounds: tuple[np.ndarray, np.ndarray] | None = None) -> DropResult:
+                  bounds: tuple[np.ndarray, np.ndarray] | None = None,
+                  spawn_bounds: tuple[np.ndarray, np.ndarray] | None = None) -> DropResult:
     """Spawn ``bodies`` above the room and simulate them to rest.
 
     Parameters
@@ -177,6 +178,10 @@ def simulate_drop(bodies: list[Body], *, room: dict | None, up: np.ndarray, sett
         (P, 4) extra static half-spaces.
     bounds
         (lo, hi) spawn reference bounds in the gravity frame; from the room when None.
+    spawn_bounds
+        (lo, hi) replacing ``bounds`` as the spawn reference only (same frame: the room frame when
+        ``bounds`` is None); the room's bounds still decide whether a body left the room. Used by the
+        simulate stage to spawn above a surface the selected cameras see (pipeline/view_spawn.py).
     """
     up = np.asarray(up, float) / np.linalg.norm(up)
     opt = Options(timestep=settings.timestep, gravity=tuple(-9.81 * up), friction=settings.friction)
@@ -193,7 +198,8 @@ def simulate_drop(bodies: list[Body], *, room: dict | None, up: np.ndarray, sett
         R_w2g = gravity_frame(up)
     model = build_model(bodies, planes=planes, room=room, room_thickness=settings.room_thickness, opt=opt)
     lo, hi = bounds
-    poses = spawn(bodies, model, up, settings, rng, lo, hi, R_w2g)
+    s_lo, s_hi = (lo, hi) if spawn_bounds is None else spawn_bounds
+    poses = spawn(bodies, model, up, settings, rng, s_lo, s_hi, R_w2g)
     N = len(bodies)
     if poses is None:
         return DropResult(np.repeat(np.eye(3)[None], N, 0), np.zeros((N, 3)), np.zeros(N, bool), 0.0,
