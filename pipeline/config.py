@@ -219,9 +219,9 @@ class TraceConfig:
     room_mesh: str = option("prep", "room mesh traced: prep = RUN/prep/<scene>/room_trace.ply when present "
                             "(simplified by geometry only: flat coloured detail such as windows may merge), "
                             "ingest = the full reconstructed mesh", choices=("prep", "ingest"))
-    denoise: str = option("auto", "denoise the PBR pass: oidn = Intel Open Image Denoise (pyoidn), bilateral = "
-                          "joint bilateral filter, auto = oidn when installed", choices=("off", "auto", "oidn",
-                                                                                         "bilateral"))
+    denoise: str = option("auto", "denoise the PBR and AO passes: oidn = Intel Open Image Denoise (pyoidn), "
+                          "bilateral = joint bilateral filter, auto = oidn when installed",
+                          choices=("off", "auto", "oidn", "bilateral"))
 
 
 @dataclass(frozen=True)

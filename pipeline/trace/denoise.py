@@ -93,3 +93,23 @@ def denoise(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray, mask: np.
     m = mask[box]
     out[box][m] = d[m]  # out[box] is a view (basic slicing)
     return out
+
+
+def denoise_ao(ao: np.ndarray, normal: np.ndarray, mask: np.ndarray, *, method: str = "auto") -> np.ndarray:
+    """Denoise an ambient-occlusion buffer inside ``mask``, guided by the normals only.
+
+    Parameters
+    ----------
+    ao : (H, W) float32 in [0, 1]
+    normal : (H, W, 3) float32 normals in [-1, 1]
+    mask : (H, W) bool, pixels that may change
+    method : as :func:`denoise`
+
+    Returns
+    -------
+    (H, W) float32 in [0, 1]; pixels outside ``mask`` unchanged.
+    """
+    img = np.repeat(np.asarray(ao, np.float32)[..., None], 3, axis=2)
+    white = np.ones_like(img)
+    out = denoise(img, white, normal, mask, method=method).mean(axis=2)
+    return np.where(mask, np.clip(out, 0.0, 1.0), ao).astype(np.float32)

@@ -8,8 +8,9 @@ reads the raster frames (``labels`` and the JSON's camera and per-instance ``obj
 for tracing (``RUN/prep/<scene>/room_trace.ply``, else the ingest room mesh). It writes
 ``RUN/trace/<scene>/drop<NNNN>/f<frame:06d>.npz`` per frame with
 
-- ``pbr`` (H, W, 3) float32: linear radiance, premultiplied by ``coverage``; 0 outside traced pixels;
-- ``ao`` (H, W) float32 in [0, 1] (1 outside object pixels);
+- ``pbr`` (H, W, 3) float32: linear radiance, premultiplied by ``coverage``; 0 outside traced pixels
+  (denoised with ``trace.denoise``);
+- ``ao`` (H, W) float32 in [0, 1] (1 outside object pixels; denoised too);
 - ``coverage`` (H, W) float32 in [0, 1]: share of the pixel covered by an unoccluded object;
 - ``shadow_ratio`` (H, W) float32: room light with objects / without (1 where unchanged);
 - ``albedo`` (H, W, 3) float32 and ``normal`` (H, W, 3) float32 (camera frame), premultiplied;
@@ -99,7 +100,7 @@ def trace_frame(ctx: StageContext, scene, scene_name: str, drop: int, frame: int
                 labels: np.ndarray, *, room_isect=None, obj_isect=None) -> dict:
     """Trace one frame with a prebuilt scene and write its NPZ; returns the frame's summary."""
     from pipeline.seeding import item_rng
-    from pipeline.trace.denoise import denoise
+    from pipeline.trace.denoise import denoise, denoise_ao
     from pipeline.trace.pbr import Camera, render, trace_mask
     from pipeline.trace.shadow import shadow_ratio
 
@@ -113,15 +114,16 @@ def trace_frame(ctx: StageContext, scene, scene_name: str, drop: int, frame: int
     rng = item_rng(ctx.cfg.run.seed, ctx.stage, f"{scene_name}/drop{drop:04d}/f{frame:06d}")
     mask = trace_mask(labels, cfg.edge_band)
     fb = render(scene, cam, mask, settings_from_config(cfg), rng)
-    pbr = fb.pbr
+    pbr, ao = fb.pbr, fb.ao
     if cfg.denoise != "off":
         pbr = denoise(fb.pbr, fb.albedo, fb.normal, fb.coverage > 0, method=cfg.denoise)
+        ao = denoise_ao(fb.ao, fb.normal, fb.coverage > 0, method=cfg.denoise)
     sr = (shadow_ratio(scene, cam, labels, rng, samples=cfg.shadow_samples, min_effect=cfg.shadow_min_effect,
                        stride=cfg.shadow_stride, smooth=cfg.shadow_smooth, room_isect=room_isect,
                        obj_isect=obj_isect)
           if cfg.shadow_samples > 0 else np.ones(labels.shape, np.float32))
     atomic_save_npz(output_path(ctx.run_dir, scene_name, drop, frame), pbr=pbr.astype(np.float32),
-                    ao=fb.ao, coverage=fb.coverage, shadow_ratio=sr, albedo=fb.albedo, normal=fb.normal,
+                    ao=ao, coverage=fb.coverage, shadow_ratio=sr, albedo=fb.albedo, normal=fb.normal,
                     spp=np.minimum(fb.spp, 65535).astype(np.uint16))
     traced = int(mask.sum())
     return {"traced_px": traced, "object_px": int((labels > 0).sum()), "rays": int(fb.rays),

@@ -15,7 +15,7 @@ from pipeline.config import build_config
 from pipeline.errors import InputError
 from pipeline.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, load_npz
 from pipeline.runner import StageContext
-from pipeline.trace.denoise import denoise, joint_bilateral, oidn_available
+from pipeline.trace.denoise import denoise, denoise_ao, joint_bilateral, oidn_available
 from pipeline.trace.pbr import Camera
 from pipeline.trace.scene import ObjectInstance, build_scene
 from pipeline.trace.shadow import shadow_ratio
@@ -110,6 +110,24 @@ def test_denoise_lowers_noise_and_touches_only_the_mask(method):
     err_in = np.sqrt(np.mean((noisy[mask] - truth[mask]) ** 2))
     err_out = np.sqrt(np.mean((out[mask] - truth[mask]) ** 2))
     assert err_out < 0.5 * err_in
+
+
+@pytest.mark.parametrize("method", ["bilateral", "oidn"])
+def test_denoise_ao_lowers_noise_stays_in_range_and_touches_only_the_mask(method):
+    if method == "oidn" and not oidn_available():
+        pytest.skip("pyoidn is not installed (optional denoiser)")
+    rng = np.random.default_rng(1)
+    H, W = 40, 50
+    truth = np.tile(np.linspace(0.3, 0.9, W, dtype=np.float32), (H, 1))
+    noisy = (rng.random((H, W, 8)) < truth[..., None]).mean(axis=2).astype(np.float32)  # 8 binary AO rays
+    normal = np.zeros((H, W, 3), np.float32)
+    normal[..., 2] = 1
+    mask = np.zeros((H, W), bool)
+    mask[5:35, 5:45] = True
+    out = denoise_ao(noisy, normal, mask, method=method)
+    assert out.dtype == np.float32 and out.min() >= 0 and out.max() <= 1
+    np.testing.assert_array_equal(out[~mask], noisy[~mask])
+    assert np.sqrt(np.mean((out[mask] - truth[mask]) ** 2)) < 0.5 * np.sqrt(np.mean((noisy[mask] - truth[mask]) ** 2))
 
 
 def test_joint_bilateral_keeps_albedo_edges():
