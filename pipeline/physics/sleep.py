@@ -31,15 +31,36 @@ def wake(model: Model, pos: np.ndarray, vel: np.ndarray, angvel: np.ndarray,
 
 
 def update_sleep(model: Model, vel: np.ndarray, angvel: np.ndarray, asleep: np.ndarray,
-                 rest_time: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                 rest_time: np.ndarray, pos: np.ndarray | None = None, quat: np.ndarray | None = None,
+                 anchor_pos: np.ndarray | None = None, anchor_quat: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, ...]:
     """Advance rest timers and put bodies that rested ``Options.sleep_time`` to sleep.
 
-    Returns new ``(vel, angvel, asleep, rest_time)``; sleeping bodies get zero velocity.
+    A body rests while it is slow (``sleep_linear``/``sleep_angular``) or, with poses given, while
+    none of its points has moved more than ``sleep_drift`` from where its rest began (the anchor):
+    contact jitter on rough scan surfaces kicks velocities without moving the body anywhere.
+
+    Returns new ``(vel, angvel, asleep, rest_time, anchor_pos, anchor_quat)``; sleeping bodies get
+    zero velocity. Anchors are None when poses are not given.
     """
     opt = model.opt
     still = (np.linalg.norm(vel, axis=1) < opt.sleep_linear) & (np.linalg.norm(angvel, axis=1) < opt.sleep_angular)
+    if pos is not None:
+        if anchor_pos is None:
+            anchor_pos, anchor_quat = pos.copy(), quat.copy()
+        dq = np.abs(np.sum(quat * anchor_quat, axis=1)).clip(0, 1)
+        drift = np.linalg.norm(pos - anchor_pos, axis=1) + 2 * np.arccos(dq) * model.body_bound
+        near = drift < opt.sleep_drift
+        # slow bodies always rest; fast ones only while they jitter in place (no more than 10x)
+        calm = (np.linalg.norm(vel, axis=1) < 10 * opt.sleep_linear) & \
+            (np.linalg.norm(angvel, axis=1) < 10 * opt.sleep_angular)
+        resting = still | (near & calm)
+        moved = ~near
+        anchor_pos = np.where(moved[:, None], pos, anchor_pos)
+        anchor_quat = np.where(moved[:, None], quat, anchor_quat)
+        still = resting & ~moved | still & moved
     rest_time = np.where(still | asleep, rest_time + opt.timestep, 0.0)
     asleep = asleep | (rest_time >= opt.sleep_time)
     vel = np.where(asleep[:, None], 0.0, vel)
     angvel = np.where(asleep[:, None], 0.0, angvel)
-    return vel, angvel, asleep, rest_time
+    return vel, angvel, asleep, rest_time, anchor_pos, anchor_quat

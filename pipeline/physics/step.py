@@ -50,12 +50,13 @@ def step(model: Model, state: State) -> State:
     sol = solve_contacts(model, state, contacts, vel_free, angvel_free, active, warm)
     pos, quat, angvel = integrate(model, state, sol.vel, sol.angvel, active)
     pos, quat, vel, angvel, _ = advance(model, state.pos, state.quat, pos, quat, sol.vel, angvel, active)
-    vel, angvel, asleep, rest = update_sleep(model, vel, angvel, asleep, state.rest_time)
+    vel, angvel, asleep, rest, apos, aquat = update_sleep(model, vel, angvel, asleep, state.rest_time, pos,
+                                                          quat, state.anchor_pos, state.anchor_quat)
     pen = float(max(0.0, -contacts.dist.min())) if contacts.count else 0.0
     keep = np.any(sol.impulse != 0, axis=1)
     return State(time=state.time + model.opt.timestep, pos=pos, quat=quat, vel=vel, angvel=angvel,
                  asleep=asleep, rest_time=rest, ws_key=contacts.key[keep], ws_impulse=sol.impulse[keep],
-                 max_penetration=pen)
+                 max_penetration=pen, anchor_pos=apos, anchor_quat=aquat)
 
 
 def penetration(model: Model, state: State) -> float:

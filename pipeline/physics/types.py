@@ -44,6 +44,8 @@ class Options:
     sleep_linear: float = 0.01       # m/s below which a body may fall asleep
     sleep_angular: float = 0.1       # rad/s below which a body may fall asleep
     sleep_time: float = 0.4          # s of continuous rest before a body sleeps
+    sleep_drift: float = 0.002       # m: a body whose points stay within this of where its rest began
+    #                                  also counts as resting (contact jitter without net motion)
     wake_speed: float = 0.05         # m/s: a body moving faster wakes sleeping bodies it touches
     ccd: bool = True                 # conservative advancement against the room distance field
 
@@ -98,6 +100,8 @@ class State:
     ws_key: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (K,) contact feature keys
     ws_impulse: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))   # (K, 3) N s, last impulses
     max_penetration: float = 0.0  # m, deepest contact penetration at the last step
+    anchor_pos: np.ndarray | None = None   # (B, 3) m, pose where each body's current rest began
+    anchor_quat: np.ndarray | None = None  # (B, 4) orientation where each body's current rest began
 
     def replace(self, **kw) -> "State":
         return replace(self, **kw)

@@ -387,3 +387,18 @@ def test_penetration_measure():
     m = build_model([box_body([0.05] * 3, 1.0)], planes=FLOOR)
     s = make_state(m, np.eye(3)[None], [[0, 0, 0.047]])
     assert penetration(m, s) == pytest.approx(0.003)
+
+
+def test_jitter_in_place_falls_asleep_but_steady_motion_does_not():
+    from pipeline.physics.sleep import update_sleep
+
+    m = build_model([box_body([0.05] * 3, 1.0)] * 2)
+    pos = np.zeros((2, 3))
+    quat = np.tile([1.0, 0, 0, 0], (2, 1))
+    asleep, rest = np.zeros(2, bool), np.zeros(2)
+    ap = aq = None
+    for k in range(40):
+        vel = np.array([[0.05 * (-1) ** k, 0, 0], [0.05, 0, 0]])   # kicked back and forth / sliding
+        pos = pos + np.array([[0.0, 0, 0], [0.05 * m.opt.timestep, 0, 0]])
+        _, _, asleep, rest, ap, aq = update_sleep(m, vel, np.zeros((2, 3)), asleep, rest, pos, quat, ap, aq)
+    assert asleep[0] and not asleep[1]
