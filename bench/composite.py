@@ -1,7 +1,9 @@
 """Compositor benchmark: each blend against a path-traced "true image", PSNR/SSIM vs seconds per frame.
 
 Run: ``nice .venv/bin/python -m bench.composite [--views N] [--quick]``. Writes
-bench/results/composite.json + .png (and composite_views.png: truth, published, full, per view).
+bench/results/composite.json + .png, composite_ablation.png (PSNR by region, SSIM and noise level of
+every variant) and composite_views.png (photo, truth, published, full, per view). ``--sheet`` writes the
+7-Scenes contact sheet to runs/bench-composite/composite_sheet.png (not committed: 7-Scenes terms).
 
 What it does (everything rendered in this run, with the project's own path tracer, pipeline/trace):
 
@@ -505,7 +507,12 @@ def _place_on_surface(scene_room, cam, up: np.ndarray, model, rng) -> tuple[np.n
 
 
 def real_sheet(frames: int = 4, scale: float = 0.5) -> None:
-    """Published vs full composites of LM-O objects on 7-Scenes redkitchen frames -> composite_sheet.png."""
+    """Published vs full composites of LM-O objects on 7-Scenes redkitchen frames.
+
+    Written to ``runs/bench-composite/composite_sheet.png`` (git-ignored: the 7-Scenes terms forbid
+    redistributing the frames with the project). Columns: photo, published, full, then zoomed crops of
+    published and full around the objects.
+    """
     import cv2
 
     from bench.common import SHARED_DATA
@@ -585,15 +592,17 @@ def real_sheet(frames: int = 4, scale: float = 0.5) -> None:
             tiles.append(cv2.resize(crop, (h, h), interpolation=cv2.INTER_NEAREST))
         rows.append(np.concatenate(tiles, axis=1))
     if rows:
-        atomic_write_image(RESULTS / "composite_sheet.png", np.concatenate(rows, axis=0))
-        log.info("wrote %s", RESULTS / "composite_sheet.png")
+        # 7-Scenes frames may not be redistributed with the project: the sheet stays in the git-ignored runs/
+        atomic_write_image(SHEET_CACHE / "composite_sheet.png", np.concatenate(rows, axis=0))
+        log.info("wrote %s", SHEET_CACHE / "composite_sheet.png")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--views", type=int, default=3, help="camera views (1..4)")
     ap.add_argument("--quick", action="store_true", help="low reference quality, one spp setting (smoke run)")
-    ap.add_argument("--sheet", action="store_true", help="only the 7-Scenes contact sheet (composite_sheet.png)")
+    ap.add_argument("--sheet", action="store_true",
+                    help="only the 7-Scenes contact sheet (runs/bench-composite/composite_sheet.png, not committed)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.sheet:
