@@ -300,7 +300,7 @@ def main() -> int:
     res.notes += [
         "Hausdorff: 100k area-uniform samples per surface (seeded), exact point-to-triangle distances "
         "(Open3D RaycastingScene) both ways, pooled for mean/p95; fraction of the input's bbox diagonal.",
-        "meshprep simplification keeps the open borders (preserveboundary) and vertex colours; the Open3D "
+        "meshprep simplification keeps the open borders (weighted border quadrics) and vertex colours; the Open3D "
         "baseline does neither. Seconds: the decimation call alone for both (no I/O, no measuring).",
         f"load average at start: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (shared machine); "
         "2M figures give wall and CPU seconds.",

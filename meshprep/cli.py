@@ -59,7 +59,9 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--relative", action="store_true", help="--max-error is a fraction of the diagonal")
     s.add_argument("--error-stat", choices=("max", "p95", "mean"), default="max",
                    help="deviation statistic bounded by --max-error (default max)")
-    s.add_argument("--no-preserve-boundary", action="store_true", help="let open borders move")
+    s.add_argument("--boundary", choices=("weighted", "locked", "free"), default="weighted",
+                   help="open borders: weighted (kept in place by extra quadrics; default), locked "
+                        "(never moved or removed), free")
     s.add_argument("--seed", type=int, default=0, help="seed of the deviation sampling")
     s.add_argument("--workers", type=int, default=None,
                    help=f"decimation processes (default: 2 for meshes of "
@@ -137,7 +139,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             rep = simplify(args.input, args.output, target_faces=args.target_faces,
                            max_error=args.max_error, relative=args.relative,
-                           error_stat=args.error_stat, preserve_boundary=not args.no_preserve_boundary,
+                           error_stat=args.error_stat, boundary=args.boundary,
                            seed=args.seed, workers=args.workers, report=args.report)
             d = rep["deviation"]
             sys.stdout.write(f"{args.output}: {rep['before']['faces']} -> {rep['after']['faces']} "

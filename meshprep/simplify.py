@@ -25,10 +25,19 @@ log = logging.getLogger(__name__)
 ERROR_STATS = ("max", "p95", "mean")
 
 
-def _decimation_params(target_faces: int, preserve_boundary: bool) -> dict:
+BOUNDARY_MODES = ("weighted", "locked", "free")
+
+
+def _decimation_params(target_faces: int, boundary: str) -> dict:
+    """PyMeshLab quadric parameters. Boundary modes: ``weighted`` adds border-plane quadrics
+    (weight BOUNDARY_QUADRIC_WEIGHT) so open borders stay where they are but may lose vertices;
+    ``locked`` forbids moving or removing border vertices (exact borders, but a scan with many holes
+    stops reducing once the borders are most of what is left, and the last collapses fold); ``free``
+    treats borders like any edge."""
     return dict(targetfacenum=int(max(target_faces, 1)), qualitythr=0.3,
-                preserveboundary=preserve_boundary, boundaryweight=1.0, preservenormal=True,
-                optimalplacement=True, planarquadric=True)
+                preserveboundary=boundary == "locked",
+                boundaryweight=constants.BOUNDARY_QUADRIC_WEIGHT if boundary == "weighted" else 1.0,
+                preservenormal=True, optimalplacement=True, planarquadric=True)
 
 
 def _decimate_part(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None,
@@ -40,7 +49,7 @@ def _decimate_part(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray |
     kw = {} if colors is None else {"v_color_matrix": colors}
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=vertices, face_matrix=faces, **kw))
-    ms.meshing_decimation_quadric_edge_collapse(**_decimation_params(target_faces, True),
+    ms.meshing_decimation_quadric_edge_collapse(**_decimation_params(target_faces, "locked"),
                                                 preservetopology=False, autoclean=True)
     m = ms.current_mesh()
     m.compact()
@@ -82,7 +91,7 @@ def _simplify_parallel(ms: "pymeshlab.MeshSet", target_faces: int, workers: int)
     ms.meshing_remove_unreferenced_vertices()
 
 
-def simplify_meshset(ms: "pymeshlab.MeshSet", target_faces: int, *, preserve_boundary: bool = True,
+def simplify_meshset(ms: "pymeshlab.MeshSet", target_faces: int, *, boundary: str = "weighted",
                      workers: int | None = None) -> int:
     """Add a simplified copy (about ``target_faces`` faces) of the current mesh of ``ms``.
 
@@ -108,7 +117,7 @@ def simplify_meshset(ms: "pymeshlab.MeshSet", target_faces: int, *, preserve_bou
         return ms.current_mesh_id()
     ms.generate_copy_of_current_mesh()
     new = ms.current_mesh_id()
-    common = _decimation_params(target_faces, preserve_boundary)
+    common = _decimation_params(target_faces, boundary)
     if ms.current_mesh().has_wedge_tex_coord():
         ms.meshing_decimation_quadric_edge_collapse_with_texture(**common, extratcoordw=1.0)
     else:
@@ -135,7 +144,7 @@ def _drop(ms: "pymeshlab.MeshSet", mid: int) -> None:
 
 def simplify(in_path: str | Path, out_path: str | Path, *, target_faces: int | None = None,
              max_error: float | None = None, error_stat: str = "max", relative: bool = False,
-             preserve_boundary: bool = True, report: str | Path | None = None,
+             boundary: str = "weighted", report: str | Path | None = None,
              samples: int = constants.DEVIATION_SAMPLES, seed: int = 0,
              workers: int | None = None) -> dict:
     """Simplify a mesh file to a face count or an error bound; write the mesh and a JSON report.
@@ -150,8 +159,8 @@ def simplify(in_path: str | Path, out_path: str | Path, *, target_faces: int | N
         ``relative``); the smallest mesh meeting it is kept.
     error_stat : {'max', 'p95', 'mean'}
         Which deviation statistic the bound applies to (symmetric, sampled).
-    preserve_boundary : bool
-        Keep open borders in place (scans).
+    boundary : {'weighted', 'locked', 'free'}
+        How open borders (scans) are treated; see :func:`_decimation_params`.
     samples, seed
         Deviation sampling (points per surface, seed).
     workers : int, optional
@@ -171,6 +180,8 @@ def simplify(in_path: str | Path, out_path: str | Path, *, target_faces: int | N
         raise InputError(f"--target-faces {target_faces} must be a positive face count")
     if max_error is not None and not (max_error > 0 and np.isfinite(max_error)):
         raise InputError(f"--max-error {max_error} must be a positive distance")
+    if boundary not in BOUNDARY_MODES:
+        raise InputError(f"--boundary {boundary!r} is not one of {', '.join(BOUNDARY_MODES)}")
     if error_stat not in ERROR_STATS:
         raise InputError(f"--error-stat {error_stat!r} is not one of {', '.join(ERROR_STATS)}")
     out_path = check_writable(out_path)
@@ -181,7 +192,7 @@ def simplify(in_path: str | Path, out_path: str | Path, *, target_faces: int | N
         raise InputError(f"{in_path}: has no faces to simplify (a point cloud?); give a triangle mesh")
     tries = []
     if target_faces is not None:
-        best = simplify_meshset(ms, target_faces, preserve_boundary=preserve_boundary, workers=workers)
+        best = simplify_meshset(ms, target_faces, boundary=boundary, workers=workers)
         dev = _deviation(ms, src, best, samples, seed)
     else:
         v0, _ = _arrays_id(ms, src)
@@ -193,7 +204,7 @@ def simplify(in_path: str | Path, out_path: str | Path, *, target_faces: int | N
         # Halve while the bound holds, then bisect between the last good and first bad count.
         while 4 <= n < hi:
             ms.set_current_mesh(src)
-            cand = simplify_meshset(ms, n, preserve_boundary=preserve_boundary, workers=workers)
+            cand = simplify_meshset(ms, n, boundary=boundary, workers=workers)
             d = _deviation(ms, src, cand, samples, seed)
             ok = d[error_stat] <= bound
             tries.append({"target_faces": n, "faces": int(ms.mesh(cand).face_number()),
@@ -222,7 +233,7 @@ def simplify(in_path: str | Path, out_path: str | Path, *, target_faces: int | N
            "deviation": {**dev, **{f"{k}_rel": (dev[k] / diag if diag > 0 else 0.0)
                                    for k in ("mean", "p95", "max")}},
            "target_faces": target_faces, "max_error": max_error, "error_stat": error_stat,
-           "relative": relative, "tries": tries, "ok": True,
+           "relative": relative, "boundary": boundary, "tries": tries, "ok": True,
            "seconds": round(time.perf_counter() - t0, 3)}
     write_json(Path(report) if report else out_path.with_name(out_path.name + ".report.json"), rep)
     return rep
