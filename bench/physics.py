@@ -156,6 +156,8 @@ def room_drops(room: dict, up: np.ndarray, bodies: list, n_drops: int, n_obj: in
     return {"drops": n_drops, "objects_per_drop": n_obj, "timestep": dt, "accepted_share": float(acc.mean()),
             "verdicts": reasons, "max_penetration_m": float(pens_a.max()),
             "p99_penetration_m": float(np.percentile(pens_a, 99)),
+            "median_penetration_m": float(np.median(pens_a)),
+            "share_drops_within_2mm": float(np.mean(pens_a <= 2e-3)),
             "max_penetration_accepted_m": float(pens_a[acc].max()) if acc.any() else None,
             "asleep_share": float(np.mean(asleep)), "median_s_per_drop": float(np.median(secs)),
             "mean_s_per_drop": float(np.mean(secs)), "median_simulated_s": float(np.median(sim_t)),
