@@ -13,13 +13,13 @@ Items: ``<scene>/room`` per scene and ``objects`` once. Outputs:
 from __future__ import annotations
 
 import logging
-import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.io import atomic_save_npz, load_npz
+from pipeline.io import atomic_save_npz, atomic_write_bytes, load_npz
 from pipeline.runner import Item, Stage, StageContext
 
 log = logging.getLogger(__name__)
@@ -102,9 +102,12 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     grid = room_distance_grid(v, f, spacing=cfg.room_spacing, cameras=scan.T_c2w[:, :3, 3], seed=0)
     atomic_save_npz(room_proxy_path(ctx.run_dir, scene), **grid)
     trace = ctx.stage_dir / scene / "room_trace.ply"
-    tmp = trace.with_name(f"room_trace.tmp-{os.getpid()}.ply")
-    rep = simplify(scan.mesh_path, tmp, max_error=cfg.room_max_error)
-    os.replace(tmp, trace)
+    # meshprep writes its report (with timings) beside its output: keep both out of the run folder, so
+    # the run's files are the same bytes every time, and move the mesh in atomically.
+    with tempfile.TemporaryDirectory(prefix="scansynth-prep-") as tmpdir:
+        tmp = Path(tmpdir) / "room_trace.ply"
+        rep = simplify(scan.mesh_path, tmp, max_error=cfg.room_max_error, report=Path(tmpdir) / "report.json")
+        atomic_write_bytes(trace, tmp.read_bytes())
     return {"scene": scene, "grid": list(grid["udf"].shape), "trace_faces": rep.get("after", {}).get("faces")}
 
 
