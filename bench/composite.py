@@ -24,7 +24,8 @@ What it does (everything rendered in this run, with the project's own path trace
   the same camera with the SAME noise field as the
   photo (one exposure of one sensor).
 - **Composites**: the trace passes at the trace stage's default settings (16 spp adaptive, AO, the
-  shadow pass as the stage calls it; also 4 and 64 spp for the speed axis) composited onto the photo by
+  PBR/AO denoiser of ``trace.denoise``, the shadow pass as the stage calls it; also 4 and 64 spp for
+  the speed axis) composited onto the photo by
   :func:`pipeline.composite.composite_published` and :func:`composite_full` with each part switched
   on/off (ablation), plus a "naive tone" variant (rendered radiance encoded with gamma 2.2 instead of the
   inverse of the tracer's sRGB decode) and an "oracle shadow pass" variant (the reference shadow ratio in
@@ -221,11 +222,17 @@ def _passes(scene, cam, labels, rng, spp: int, shadow: int):
     cfg = dataclasses.replace(TraceConfig(), spp=spp, spp_min=min(4, spp))
     t0 = time.perf_counter()
     fb = render(scene, cam, trace_mask(labels, cfg.edge_band), settings_from_config(cfg), rng)
+    pbr, ao = fb.pbr, fb.ao
+    if cfg.denoise != "off":   # as the trace stage does (trace.denoise, "auto" = OIDN when installed)
+        from pipeline.trace.denoise import denoise, denoise_ao
+
+        pbr = denoise(fb.pbr, fb.albedo, fb.normal, fb.coverage > 0, method=cfg.denoise)
+        ao = denoise_ao(fb.ao, fb.normal, fb.coverage > 0, method=cfg.denoise)
     t1 = time.perf_counter()
     sr = shadow_ratio(scene, cam, labels, rng, samples=shadow, min_effect=cfg.shadow_min_effect,
                       stride=cfg.shadow_stride, smooth=cfg.shadow_smooth)
     t2 = time.perf_counter()
-    return fb.pbr, fb.ao, fb.coverage, sr, t1 - t0, t2 - t1
+    return pbr, ao, fb.coverage, sr, t1 - t0, t2 - t1
 
 
 def _metrics(img: np.ndarray, truth: np.ndarray, regions: dict[str, np.ndarray]) -> dict[str, float]:
@@ -571,12 +578,18 @@ def real_sheet(frames: int = 4, scale: float = 0.5) -> None:
         labels = np.where(hh.hit, scene.tri_inst[np.maximum(hh.prim, 0)], 0).astype(np.uint16).reshape(h, w)
         t0 = time.perf_counter()
         fb = render(scene, cam, trace_mask(labels, tcfg.edge_band), settings_from_config(tcfg), rng)
+        pbr, ao = fb.pbr, fb.ao
+        if tcfg.denoise != "off":
+            from pipeline.trace.denoise import denoise, denoise_ao
+
+            pbr = denoise(fb.pbr, fb.albedo, fb.normal, fb.coverage > 0, method=tcfg.denoise)
+            ao = denoise_ao(fb.ao, fb.normal, fb.coverage > 0, method=tcfg.denoise)
         sr = shadow_ratio(scene, cam, labels, rng, samples=tcfg.shadow_samples, min_effect=tcfg.shadow_min_effect,
                           stride=tcfg.shadow_stride, smooth=tcfg.shadow_smooth)
         log.info("frame %d: %d objects, traced in %.1f s", fi, len(insts), time.perf_counter() - t0)
         photo = cv2.resize(read_color(scan, fi), (w, h), interpolation=cv2.INTER_AREA)
-        pub = composite_published(photo, fb.pbr, fb.ao, labels > 0, coverage=fb.coverage)
-        full = composite_full(photo, fb.pbr, fb.coverage, sr, labels, rng=rng, edge_band=tcfg.edge_band)
+        pub = composite_published(photo, pbr, ao, labels > 0, coverage=fb.coverage)
+        full = composite_full(photo, pbr, fb.coverage, sr, labels, rng=rng, edge_band=tcfg.edge_band)
         ys, xs = np.nonzero(labels > 0)
         cy, cx = int(ys.mean()), int(xs.mean())
         half = 48
