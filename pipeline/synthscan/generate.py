@@ -188,7 +188,7 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
     width, height : colour image size, pixels (depth is smaller for scannet and 3rscan, as in the real data)
     frames : number of frames
     contact_sheet : optional PNG path for a contact sheet of the frames (blurred ones marked)
-    photo_mode : "raster" (pyrender) or "traced" (needs the path tracer; not available yet)
+    photo_mode : "raster" (pyrender) or "traced" (path tracer, see ``render.TracedPhotoRenderer``)
 
     Returns
     -------

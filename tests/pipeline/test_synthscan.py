@@ -374,9 +374,10 @@ def test_bad_arguments_are_user_errors(tmp_path, kwargs, match):
         make_scan(tmp_path / "x", **args)
 
 
-def test_traced_photo_mode_is_not_available_yet(tmp_path):
-    with pytest.raises(UserError, match="issue 9"):
-        make_scan(tmp_path / "x", layout="7scenes", seed=0, width=64, height=48, frames=2, photo_mode="traced")
+def test_unknown_photo_mode_is_a_user_error(tmp_path):
+    # the traced mode itself is tested in test_synthscan_traced.py
+    with pytest.raises(UserError, match="photo mode"):
+        make_scan(tmp_path / "x", layout="7scenes", seed=0, width=64, height=48, frames=2, photo_mode="mitsuba")
 
 
 def test_builtin_tiny_is_reused_and_unknown_name_fails(tmp_path):
