@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from pipeline.config import build_config
@@ -11,10 +13,16 @@ from tests.pipeline.stage_fixtures import ARRAYS, FAILING
 ray = pytest.importorskip("ray", reason="Ray is an optional extra (scansynth[ray]); not installed")
 
 
+REPO = Path(__file__).resolve().parents[2]
+
+
 @pytest.fixture(scope="module")
 def local_ray():
-    # One local instance for the module: ray.init() takes seconds.
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False)
+    # One local instance for the module: ray.init() takes seconds. The test stages live in the
+    # repository's tests package, outside the installed distribution: tell the workers where it is
+    # (otherwise they see it only when the driver's sys.path happens to start at the repository).
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, configure_logging=False,
+             runtime_env={"env_vars": {"PYTHONPATH": str(REPO)}})
     yield
     ray.shutdown()
 
