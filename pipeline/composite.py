@@ -33,7 +33,6 @@ Outputs per (scene, drop, frame) item, where the export stage reads them:
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -364,7 +363,6 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     from pipeline.trace.stage import load_trace
 
     cfg = ctx.cfg.composite
-    t0 = time.perf_counter()
     scene, drop, frame = item.data["scene"], int(item.data["drop"]), int(item.data["frame"])
     stem = frame_stem(ctx.run_dir, scene, drop, frame)
     doc = read_json(stem.with_suffix(".json"))
@@ -406,7 +404,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     depth = composite_depth(labels, arr["depth"], real, room)
     atomic_write_image(image_path(ctx.run_dir, scene, drop, frame), image)
     atomic_save_npz(depth_path(ctx.run_dir, scene, drop, frame), depth=depth)
-    return {"mode": cfg.mode, **info, "seconds": round(time.perf_counter() - t0, 3)}
+    return {"mode": cfg.mode, **info}
 
 
 STAGE = Stage("composite", plan, run_item)

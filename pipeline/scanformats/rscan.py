@@ -18,6 +18,7 @@ intrinsics and ``T_d2c = inv(E_color) @ E_depth``.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -103,7 +104,7 @@ def read(root: Path) -> Scan:
     mesh = next((root / n for n in MESH_NAMES if (root / n).is_file()), None)
     F = len(kept)
     registered = (w, h) == (wd, hd) and np.allclose(Kc, Kd) and np.allclose(T_d2c, np.eye(4))
-    meta = {"skipped": skipped, "T_d2c": T_d2c.tolist(), "info_file": str(ipath),
+    meta = {"skipped": skipped, "T_d2c": T_d2c.tolist(), "info_file": Path(os.path.relpath(ipath, root)).as_posix(),
             "registration": "depth resampled into the colour camera with both intrinsics from _info.txt"}
     return Scan(name=root.name, root=str(root.resolve()), format=FORMAT,
                 frame_ids=np.asarray(kept, dtype=np.int64), color_paths=tuple(cpaths), depth_paths=tuple(dpaths),

@@ -15,6 +15,7 @@ leaves edge offsets of a few pixels. That mismatch is recorded in ``Scan.meta["r
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -77,7 +78,8 @@ def read(root: Path) -> Scan:
     check_intrinsics(K, w, h, kpath)
     check_image_sizes(dpaths, (w, h), "depth", depth=True)
     up = np.zeros(3)
-    meta: dict = {"skipped": skipped, "intrinsics_file": str(kpath),
+    # Relative to the scan root: scan.json must not depend on where the scan (or the run) lives.
+    meta: dict = {"skipped": skipped, "intrinsics_file": Path(os.path.relpath(kpath, root)).as_posix(),
                   "registration": "assumed: one K for colour and depth, no calibration between the two "
                                   "cameras in 7-Scenes (edge offsets of a few pixels)"}
     gpath = _find(root, fdir, "gravity-direction.txt")

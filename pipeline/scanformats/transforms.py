@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -132,7 +133,7 @@ def read(root: Path) -> Scan:
     if (wd, hd) != (w, h):
         Kd[:, 0] *= wd / w
         Kd[:, 1] *= hd / h
-    meta = {"skipped": {"invalid_pose": n_invalid}, "transforms_file": str(jpath),
+    meta = {"skipped": {"invalid_pose": n_invalid}, "transforms_file": Path(os.path.relpath(jpath, root)).as_posix(),
             "registration": "depth assumed rendered from the colour camera (same pose and K)"}
     mesh = ""
     if doc.get("ply_file_path"):

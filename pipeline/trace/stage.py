@@ -20,7 +20,6 @@ for tracing (``RUN/prep/<scene>/room_trace.ply``, else the ingest room mesh). It
 from __future__ import annotations
 
 import logging
-import time
 from pathlib import Path
 
 import numpy as np
@@ -105,7 +104,6 @@ def trace_frame(ctx: StageContext, scene, scene_name: str, drop: int, frame: int
     from pipeline.trace.shadow import shadow_ratio
 
     cfg = ctx.cfg.trace
-    t0 = time.perf_counter()
     cam = Camera(K=np.asarray(doc["K"], np.float64), T_c2w=np.asarray(doc["T_c2w"], np.float64),
                  width=int(doc["width"]), height=int(doc["height"]))
     if labels.shape != (cam.height, cam.width):
@@ -128,7 +126,7 @@ def trace_frame(ctx: StageContext, scene, scene_name: str, drop: int, frame: int
     traced = int(mask.sum())
     return {"traced_px": traced, "object_px": int((labels > 0).sum()), "rays": int(fb.rays),
             "mean_spp": round(float(fb.spp[mask].mean()), 3) if traced else 0.0,
-            "shadow_px": int((sr != 1.0).sum()), "seconds": round(time.perf_counter() - t0, 3)}
+            "shadow_px": int((sr != 1.0).sum())}
 
 
 def run_item(ctx: StageContext, item: Item) -> dict:
@@ -138,7 +136,6 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     from pipeline.trace.shadow import split_intersectors
 
     cfg = ctx.cfg.trace
-    t0 = time.perf_counter()
     scene_name, drop = item.data["scene"], int(item.data["drop"])
     frames = [int(f) for f in item.data["frames"]]
     raster_dir = ctx.run_dir / "raster" / scene_name / f"drop{drop:04d}"
@@ -162,7 +159,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
                 split = split_intersectors(scene)
         out[f"f{frame:06d}"] = trace_frame(ctx, scene, scene_name, drop, frame, doc, labels,
                                            room_isect=split[0], obj_isect=split[1])
-    return {"frames": out, "seconds": round(time.perf_counter() - t0, 3)}
+    return {"frames": out}
 
 
 STAGE = Stage("trace", plan, run_item)
