@@ -36,7 +36,7 @@ EXECUTION_ONLY = {("run", "workers"), ("run", "executor"), ("run", "ray_address"
 # Commands that are not stages: name -> (module with add_arguments(parser) and run(args) -> int, help)
 EXTRA_COMMANDS: dict[str, tuple[str, str]] = {
     "make-scan": ("pipeline.synthscan.cli", "write a procedural room scan with ground truth in a real scan layout"),
-    "preview": ("pipeline.preview", "contact sheet of a dataset: images with masks, boxes and pose axes drawn "
+    "preview": ("pipeline.preview_cli", "contact sheet of a dataset: images with masks, boxes and pose axes drawn "
                                     "from the written annotations"),
 }
 

@@ -8,14 +8,13 @@ box or mask shows up as a misdrawn overlay, so the sheet also checks the annotat
 
 from __future__ import annotations
 
-import argparse
 import logging
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.errors import UserError
-from pipeline.io import atomic_write_image, read_json
+from pipeline.io import read_json
 
 log = logging.getLogger(__name__)
 
@@ -124,23 +123,3 @@ def contact_sheet(dataset: Path, *, max_images: int = 12, columns: int = 4, tile
         row += [np.zeros((th, tile_width, 3), np.uint8)] * (columns - len(row))
         rows.append(np.concatenate(row, axis=1))
     return np.concatenate(rows, axis=0)
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("path", type=Path, help="run folder or BOP dataset folder")
-    p.add_argument("--out", type=Path, default=None,
-                   help=f"PNG to write (default: {DEFAULT_NAME} in the run folder)")
-    p.add_argument("--max-images", type=int, default=12, help="images on the sheet (default 12)")
-
-
-def run(args: argparse.Namespace) -> int:
-    import sys
-
-    if args.max_images < 1:
-        raise UserError(f"--max-images {args.max_images}: must be at least 1")
-    dataset = find_dataset(args.path.resolve())
-    out = args.out or (args.path / DEFAULT_NAME)
-    atomic_write_image(out, contact_sheet(dataset, max_images=args.max_images))
-    if not args.quiet:
-        print(f"preview: {out.resolve()}", file=sys.stderr)
-    return 0
