@@ -1,0 +1,302 @@
+"""End to end: `scansynth run` on the built-in tiny scan, killed, fed bad inputs, and run for many frames.
+
+Everything runs the real command (``python -m pipeline run``) on the built-in tiny synthetic scan and the
+built-in shapes (or small generated files), so nothing outside the repository is needed.
+
+- Repeated SIGKILL at random moments (seeded), resumed each time: the final run folder is complete and
+  byte-identical to an uninterrupted run (every file but run.json, the report of the last invocation).
+- Bad inputs: a scan with corrupt frames beside a good scan, a truncated PLY beside good objects, a
+  config pointing nowhere. The run finishes what it can, names each failure with its cause in run.json
+  and on stderr, exits 1 (2 for the config), and a second invocation keeps every finished item.
+- Memory: raster + trace + composite over many frames in one process; resident memory (from
+  /proc/self/statm) must not grow per frame once warm.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.runner import ITEMS_DIR
+
+pytestmark = pytest.mark.slow
+
+VOLATILE = {"run.json"}     # timings of the last invocation: legitimately differs between runs
+
+CONFIG = """
+[run]
+seed = 5
+preset = "fast"
+[scan]
+paths = {scans}
+[objects]
+paths = {objects}
+[select]
+max_frames = 6
+[prep]
+room_spacing = 0.04    # coarser room distance field than the default: the same code, a quarter of the time
+[simulate]
+drops = 2
+objects_per_drop = 4
+max_time = 10.0        # a drop that never settles costs 10 simulated seconds, not 40
+"""
+
+
+def _config(path: Path, scans=("builtin:tiny",), objects=("builtin:shapes",)) -> Path:
+    path.write_text(CONFIG.format(scans=json.dumps(list(scans)), objects=json.dumps(list(objects))))
+    return path
+
+
+def _cmd(cfg: Path, out: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "pipeline", "run", str(cfg), "--out", str(out), "--progress", "off", *extra]
+
+
+def _run(cfg: Path, out: Path, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run(_cmd(cfg, out, *extra), capture_output=True, text=True, timeout=900)
+
+
+def _without_seconds(doc):
+    if isinstance(doc, dict):
+        return {k: _without_seconds(v) for k, v in doc.items() if k != "seconds"}
+    if isinstance(doc, list):
+        return [_without_seconds(v) for v in doc]
+    return doc
+
+
+def _snapshot(root: Path) -> dict[str, bytes]:
+    """Every file's bytes but run.json's; a done marker (the runner's bookkeeping: the item's summary,
+    which includes its wall seconds) counts without its "seconds" entries."""
+    out = {}
+    for p in sorted(root.rglob("*")):
+        if not p.is_file() or p.name in VOLATILE:
+            continue
+        data = p.read_bytes()
+        if p.name.endswith(".done.json") and f"/{ITEMS_DIR}/" in p.as_posix():
+            data = json.dumps(_without_seconds(json.loads(data)), sort_keys=True).encode()
+        out[str(p.relative_to(root))] = data
+    return out
+
+
+def _done_markers(root: Path) -> dict[str, int]:
+    return {d.name: len(list((d / ITEMS_DIR).rglob("*.done.json"))) for d in sorted(root.iterdir())
+            if (d / ITEMS_DIR).is_dir()}
+
+
+def _images(root: Path) -> list[Path]:
+    """The dataset's RGB images (BOP layout: export/dataset/<split>/<scene>/rgb/)."""
+    return sorted(p for p in (root / "export").rglob("rgb/*") if p.suffix in (".jpg", ".png"))
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> tuple[Path, Path, float]:
+    """An uninterrupted run: (config, run folder, wall seconds)."""
+    tmp = tmp_path_factory.mktemp("e2e_ref")
+    cfg = _config(tmp / "tiny.toml")
+    out = tmp / "ref"
+    t0 = time.monotonic()
+    r = _run(cfg, out)
+    seconds = time.monotonic() - t0
+    assert r.returncode == 0, r.stderr
+    return cfg, out, seconds
+
+
+def test_reference_run_makes_images(reference):
+    """The drops land where the selected frames look, so the tiny scan gives a real dataset."""
+    _, out, _ = reference
+    report = json.loads((out / "run.json").read_text())
+    stages = {s["stage"]: s for s in report["stages"]}
+    assert report["failed"] == 0
+    assert stages["composite"]["done"] >= 3, stages["raster"]
+    assert len(_images(out)) >= 3
+    assert sorted((out / "export").rglob("scene_gt_coco.json")), "export wrote no COCO file"
+
+
+def test_repeated_kill9_then_resume_is_byte_identical(reference, tmp_path):
+    """Kill moments are random (seeded) points of progress: after a random number of finished items
+    (counted by done markers, so the kills spread over the stages) plus a random delay, and one random
+    moment early on (start-up, imports, first items). Each kill takes the CLI and its pool workers."""
+    cfg, ref, _ = reference
+    rng = random.Random(20261122)
+    total = sum(_done_markers(ref).values())
+    targets = sorted(rng.sample(range(1, total), 4))
+    out = tmp_path / "killed"
+    kills = []
+
+    def kill_at(target: int | None, delay: float) -> bool:
+        # workers=2 here and 1 in the reference: the process pool must give the same bytes
+        proc = subprocess.Popen(_cmd(cfg, out, "-q", "--set", "run.workers=2"), stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL, start_new_session=True)
+        deadline = time.monotonic() + 900
+        while target is not None and proc.poll() is None and time.monotonic() < deadline:
+            if out.is_dir() and sum(_done_markers(out).values()) >= target:
+                break
+            time.sleep(0.01)
+        time.sleep(delay)
+        if proc.poll() is not None:
+            return False                             # finished before the kill moment
+        os.killpg(proc.pid, signal.SIGKILL)          # mid-write or not
+        proc.wait(timeout=60)
+        kills.append((target, round(delay, 2), _done_markers(out) if out.is_dir() else {}))
+        return True
+
+    kill_at(None, rng.uniform(1.0, 4.0))
+    for t in targets:
+        if not kill_at(t, rng.uniform(0.0, 0.5)):
+            break
+    assert len(kills) >= 4, f"the run finished before it could be killed several times: {kills}"
+    r = _run(cfg, out)
+    assert r.returncode == 0, r.stderr
+    a, b = _snapshot(ref), _snapshot(out)
+    assert sorted(a) == sorted(b), (f"missing: {sorted(set(a) - set(b))[:5]}, "
+                                    f"extra: {sorted(set(b) - set(a))[:5]}; kills: {kills}")
+    different = [k for k in a if a[k] != b[k]]
+    detail = ""
+    if different and different[0].endswith(".json"):
+        import difflib
+
+        detail = "\n".join(difflib.unified_diff(a[different[0]].decode().splitlines(),
+                                                  b[different[0]].decode().splitlines(), lineterm="", n=1))
+    assert not different, f"files differ after {len(kills)} kills ({kills}): {different[:10]}\n{detail}"
+    assert not list(out.rglob("*.tmp-*")), "partial files left behind"
+
+
+def _corrupt_scan(root: Path) -> Path:
+    """A copy of the built-in tiny scan with one truncated colour PNG and one depth PNG of garbage."""
+    from pipeline.synthscan import builtin_scan
+
+    scan = builtin_scan("tiny", root / "tiny-src")
+    bad = root / "corrupt-scan"
+    shutil.copytree(scan, bad, ignore=shutil.ignore_patterns("ground_truth"))
+    png = bad / "frames" / "frame-000002.color.png"
+    png.write_bytes(png.read_bytes()[:200])
+    (bad / "frames" / "frame-000005.depth.png").write_bytes(b"not a png")
+    return bad
+
+
+def test_bad_inputs_finish_what_they_can(tmp_path):
+    # a corrupt scan beside a good one: the good scene becomes a dataset, the bad one is reported
+    bad_scan = _corrupt_scan(tmp_path)
+    cfg = _config(tmp_path / "bad.toml", scans=("builtin:tiny", str(bad_scan)))
+    out = tmp_path / "run"
+    r = _run(cfg, out)
+    assert r.returncode == 1, r.stderr
+    report = json.loads((out / "run.json").read_text())
+    assert report["failed"] >= 1
+    fails = {(s["stage"], k): v for s in report["stages"] for k, v in s["failures"].items()}
+    ingest_fail = fails[("ingest", "corrupt-scan")]
+    assert "frame-000005.depth.png" in ingest_fail or "frame-000002.color.png" in ingest_fail
+    assert "cannot be read" in ingest_fail
+    assert f"FAILED ingest corrupt-scan: {ingest_fail}" in r.stderr
+    assert "Traceback" not in r.stderr
+    stages = {s["stage"]: s for s in report["stages"]}
+    assert stages["composite"]["done"] >= 1 and _images(out), "the good scene made no image"
+    # every failure is the bad scene's (no stage failed for the good one)
+    assert all("corrupt-scan" in key or key == "(plan)" for _, key in fails), fails
+
+    # resume: the failed item is retried (and fails again with the same cause); nothing finished is
+    # redone or changed
+    before = _snapshot(out)
+    r2 = _run(cfg, out)
+    assert r2.returncode == 1
+    report2 = json.loads((out / "run.json").read_text())
+    assert report2["done"] == 0 and report2["skipped"] == report["done"] + report["skipped"]
+    after = _snapshot(out)
+    changed = [k for k in before if k in after and before[k] != after[k]]
+    assert not changed and set(before) <= set(after), changed[:10]
+
+
+def test_broken_object_file_is_reported(tmp_path):
+    import trimesh
+
+    objs = tmp_path / "objects"
+    objs.mkdir()
+    trimesh.creation.box((0.10, 0.06, 0.04)).export(objs / "a_box.ply")
+    trimesh.creation.cylinder(0.035, 0.12).export(objs / "b_cylinder.ply")
+    data = (objs / "a_box.ply").read_bytes()
+    (objs / "c_truncated.ply").write_bytes(data[: len(data) // 2])
+    cfg = _config(tmp_path / "obj.toml", objects=(str(objs),))
+    out = tmp_path / "run"
+    r = _run(cfg, out, "--to", "prep")
+    assert r.returncode == 1, r.stderr
+    report = json.loads((out / "run.json").read_text())
+    fails = {(s["stage"], k): v for s in report["stages"] for k, v in s["failures"].items()}
+    cause = fails[("ingest", "objects")]
+    assert "c_truncated.ply" in cause and "cannot be read" in cause
+    assert f"FAILED ingest objects: {cause}" in r.stderr
+    assert "Traceback" not in r.stderr
+    # what does not need the library finished: the scene's ingest, its frame selection, its room proxy
+    markers = _done_markers(out)
+    assert markers["ingest"] == 1 and markers["select"] == 1 and markers["prep"] >= 1, markers
+
+
+def test_config_pointing_nowhere_exits_2(tmp_path):
+    cfg = _config(tmp_path / "nowhere.toml", scans=(str(tmp_path / "no-such-scan"),))
+    r = _run(cfg, tmp_path / "run")
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    assert "no-such-scan" in r.stderr and "Traceback" not in r.stderr
+    r = _run(tmp_path / "missing.toml", tmp_path / "run2")
+    assert r.returncode == 2 and "missing.toml" in r.stderr and "Traceback" not in r.stderr
+
+
+def _rss_bytes() -> int:
+    """Resident memory of this process after a full collection and returning free heap to the system
+    (glibc ``malloc_trim``), so that allocator caching does not read as growth."""
+    import ctypes
+    import gc
+
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+@pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="needs /proc (Linux)")
+def test_memory_stays_flat_over_many_frames(reference, tmp_path):
+    """raster + trace + composite of the reference run's frames, over and over, in this process."""
+    import numpy as np
+
+    from pipeline.config import load_config
+    from pipeline.runner import StageContext
+    from pipeline.stages import get_stage
+
+    _, ref, _ = reference
+    run = tmp_path / "run"
+    shutil.copytree(ref, run)
+    cfg = load_config(run / "config.toml")
+    stages = [get_stage(n) for n in ("raster", "trace", "composite")]
+    plans = [(st, StageContext(run, cfg, st.name)) for st in stages]
+    plans = [(st, ctx, st.plan(ctx)) for st, ctx in plans]
+    frames_per_round = len(plans[2][2])
+    assert frames_per_round >= 3
+
+    def one_round() -> None:
+        for st, ctx, items in plans:
+            for it in items:
+                st.run_item(ctx, it)
+
+    one_round()                 # warm-up: libraries, GL context, shader and Embree caches
+    samples = [_rss_bytes()]
+    for _ in range(6):
+        one_round()
+        samples.append(_rss_bytes())
+    frames = np.arange(len(samples)) * frames_per_round
+    slope = float(np.polyfit(frames, np.asarray(samples, float), 1)[0])     # bytes per frame
+    growth = samples[-1] - samples[0]
+    # A leak of one frame's buffers (a 160x120 float32 image is 77 kB; a pyrender shader program or
+    # an Embree scene is more) would add at least ~100 kB per frame.
+    msg = (f"resident memory {[round(s / 1e6, 1) for s in samples]} MB over {frames[-1]} frames: "
+           f"{slope / 1e3:.0f} kB/frame")
+    assert slope < 100e3, msg
+    assert growth / frames[-1] < 100e3, msg
