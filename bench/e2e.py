@@ -106,6 +106,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", type=int, default=0, help="run.workers (0 = one per core)")
     ap.add_argument("--keep", action="store_true", help="reuse finished stages in --work (resume)")
     args = ap.parse_args(argv)
+    import signal
+
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))    # cut short: still remove the temp configs
     if not SHARED_DATA.is_dir():
         print(f"bench.e2e: {SHARED_DATA} is absent; nothing to measure", file=sys.stderr)
         return 0
@@ -146,9 +149,16 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{p}: {n} images, wall {wall:.0f} s, cpu {cpu:.0f} s -> "
                   f"{results[p]['images_per_hour_wall']:.0f} img/h wall, "
                   f"{results[p]['images_per_hour_cpu']:.0f} img/h by CPU time", file=sys.stderr)
+            # written after every preset, so a run cut short still leaves the finished presets' figures
+            write_results(results, presets, args, cores, load0)
     finally:
         for c in cfgs.values():
             c.unlink(missing_ok=True)
+    return 0
+
+
+def write_results(results: dict[str, dict], presets: list[str], args, cores: int, load0: float) -> None:
+    """bench/results/e2e.json + e2e.png (+ e2e_stages.png) from the presets finished so far."""
     base_name = "fast" if "fast" in results else presets[0]
     b = results[base_name]
     res = BenchResult("e2e", speed_label="images per hour (CPU time over the 2 cores; wall beside)",
@@ -178,9 +188,11 @@ def main(argv: list[str] | None = None) -> int:
         "images_per_hour_wall is what this (shared, loaded) machine gave during the run.",
         "Per-stage split: results.presets.<p>.stages (wall_s, cpu_s, run.json seconds and items).",
     ]
+    missing = [p for p in presets if p not in results]
+    if missing:
+        res.notes.append(f"not measured (the run was cut short): {', '.join(missing)}")
     res.write()
     _stage_chart(results)
-    return 0
 
 
 def _stage_chart(results: dict[str, dict]) -> None:
