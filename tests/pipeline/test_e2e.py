@@ -294,9 +294,11 @@ def test_memory_stays_flat_over_many_frames(reference, tmp_path):
     frames = np.arange(len(samples)) * frames_per_round
     slope = float(np.polyfit(frames, np.asarray(samples, float), 1)[0])     # bytes per frame
     growth = samples[-1] - samples[0]
-    # A leak of one frame's buffers (a 160x120 float32 image is 77 kB; a pyrender shader program or
-    # an Embree scene is more) would add at least ~100 kB per frame.
+    # The leaks this guards against are a renderer, GL program or Embree scene kept per frame or per drop
+    # (megabytes each: the tiny room alone has 258k triangles) and a frame's buffers kept per frame (at
+    # 160x120: colour, depth, labels, traced radiance and shadow ratio, ~0.5 MB). Allocator steps of a
+    # few MB between rounds are normal (seen: 0-5 MB), so the bound is per frame over 54 frames.
     msg = (f"resident memory {[round(s / 1e6, 1) for s in samples]} MB over {frames[-1]} frames: "
            f"{slope / 1e3:.0f} kB/frame")
-    assert slope < 100e3, msg
-    assert growth / frames[-1] < 100e3, msg
+    assert slope < 400e3, msg
+    assert growth / frames[-1] < 400e3, msg
