@@ -50,6 +50,16 @@ def advance(model: Model, pos0: np.ndarray, quat0: np.ndarray, pos1: np.ndarray,
     dq = np.abs(np.sum(quat0[idx] * quat1[idx], axis=1)).clip(0, 1)
     ang = 2 * np.arccos(dq)
     sweep = np.linalg.norm(pos1[idx] - pos0[idx], axis=1) + ang * model.body_bound[idx]
+    # the trilinear distance changes by at most sqrt(3) per metre moved: a sweep shorter than
+    # tol / sqrt(3) cannot enter the shell by more than tol, so it needs no check (resting bodies)
+    need = sweep * np.sqrt(3.0) >= tol
+    # ... nor can a body whose centre stays farther from the surface than its points can reach
+    c0, _ = room_distance(model, pos0[idx], gradient=False)
+    need &= ~(c0 - np.sqrt(3.0) * (model.body_bound[idx] + sweep) - model.room_thickness
+              - model.body_radius[idx] > 0)
+    idx, sweep = idx[need], sweep[need]
+    if not len(idx):
+        return pos1, quat1, vel, angvel, hit
     nsub = np.maximum(1, np.ceil(sweep / h)).astype(int)
     pos1, quat1, vel, angvel = pos1.copy(), quat1.copy(), vel.copy(), angvel.copy()
     rad = model.body_radius

@@ -75,12 +75,10 @@ def room_distance(model: Model, points: np.ndarray, *, gradient: bool = True
     gi = np.clip(np.floor(g), 0, n - 2).astype(np.int64)
     f = np.clip(g - gi, 0.0, 1.0)
     u = model.room_udf
-    x0, y0, z0 = gi[:, 0], gi[:, 1], gi[:, 2]
-    c = np.empty((len(p), 2, 2, 2))
-    for dx in (0, 1):
-        for dy in (0, 1):
-            for dz in (0, 1):
-                c[:, dx, dy, dz] = u[x0 + dx, y0 + dy, z0 + dz]
+    sx, sy, sz = int(n[1] * n[2]), int(n[2]), 1    # C order (build_model makes the grid contiguous)
+    lin = gi @ np.array([sx, sy, sz], np.int64)
+    corner = np.array([dx * sx + dy * sy + dz * sz for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
+    c = np.take(u.reshape(-1), lin[:, None] + corner[None, :]).astype(float).reshape(len(p), 2, 2, 2)
     fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
     cx = c[:, 0] * (1 - fx)[:, None, None] + c[:, 1] * fx[:, None, None]      # (N, 2, 2) over y, z
     cxy = cx[:, 0] * (1 - fy)[:, None] + cx[:, 1] * fy[:, None]               # (N, 2) over z
@@ -98,6 +96,76 @@ def room_distance(model: Model, points: np.ndarray, *, gradient: bool = True
     nrm = np.linalg.norm(grad, axis=1, keepdims=True)
     grad = np.where(nrm > 1e-12, grad / np.maximum(nrm, 1e-300), np.array([0.0, 0.0, 1.0]))
     return d.reshape(shp), grad.reshape(shp + (3,))
+
+
+class RoomMesh:
+    """Exact closest-point queries on the room surface mesh (Open3D's BVH; built once per room).
+
+    The trilinear unsigned distance grid is only a broad phase: across a cell that the surface passes
+    through its value is too large by up to a quarter of the spacing and its gradient can point the
+    wrong way, so contacts taken from it let points sink mm into the surface shell. Contact candidates
+    (grid distance within reach) are therefore re-measured against the mesh.
+
+    Parameters
+    ----------
+    vertices
+        (V, 3) float world vertices, m.
+    faces
+        (T, 3) int triangle indices.
+    """
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
+        import open3d as o3d
+
+        self._o3d = o3d
+        self._scene = o3d.t.geometry.RaycastingScene()
+        self._scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
+                                  o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)))
+
+    def closest(self, points: np.ndarray, centres: np.ndarray | None = None,
+                hint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Distance to the surface and the contact normal of ``points``.
+
+        Parameters
+        ----------
+        points
+            (N, 3) float64 world points, m.
+        centres
+            (N, 3) float64 world centres of the bodies owning the points, or None. A scan surface has
+            no inside, so the side a point belongs on is the side its body's centre is on: where the
+            closest point lies inside a face and the point is on the other side of that face than its
+            centre, the point has crossed the sheet and its distance is negative (normal towards the
+            centre's side). Without centres, distances are unsigned.
+        hint
+            (N, 3) float64 directions away from the surface from a coarser source (the grid's
+            gradient), or None: where the closest point is on a face's edge or corner (holes' borders,
+            ragged scan edges) and the exact direction opposes the hint, the point has crossed too.
+
+        Returns
+        -------
+        dist : (N,) float64, m (< 0: crossed the surface)
+        normal : (N, 3) float64 unit direction in which the point leaves the surface
+        """
+        if len(points) == 0:
+            return np.zeros(0), np.zeros((0, 3))
+        r = self._scene.compute_closest_points(
+            self._o3d.core.Tensor(np.ascontiguousarray(points, np.float32)))
+        cp = r["points"].numpy().astype(float)
+        v = points - cp
+        d = np.linalg.norm(v, axis=1)
+        fn = r["primitive_normals"].numpy().astype(float)
+        fn *= np.where(np.sum(fn * v, axis=1) < 0, -1.0, 1.0)[:, None]     # towards the point
+        n = np.where((d > 1e-6)[:, None], v / np.maximum(d, 1e-300)[:, None], fn)
+        if centres is None:
+            return d, n
+        uv = r["primitive_uvs"].numpy().astype(float)
+        interior = (uv[:, 0] > 1e-4) & (uv[:, 1] > 1e-4) & (uv[:, 0] + uv[:, 1] < 1 - 1e-4)
+        crossed = interior & (np.sum((centres - cp) * fn, axis=1) < 0)
+        if hint is not None:
+            crossed |= ~interior & (np.sum(n * hint, axis=1) < 0)
+        d = np.where(crossed, -d, d)
+        n = np.where((crossed & interior)[:, None], -fn, np.where(crossed[:, None], -n, n))
+        return d, n
 
 
 def speculative_margin(model: Model, state: State) -> np.ndarray:
@@ -136,24 +204,36 @@ def _select(d: np.ndarray, pts: np.ndarray, k: int, patch: float) -> np.ndarray:
     dup[:, 1:] = idx[:, 1:] == idx[:, :1]
     rows = np.flatnonzero(dup.any(axis=1))
     if len(rows):
-        order = np.argsort(d[rows], axis=1)[:, :2 * idx.shape[1]]
-        for r, row in enumerate(rows):
-            free = [v for v in order[r] if v not in set(idx[row])]
-            slots = np.flatnonzero(dup[row])
-            n = min(len(slots), len(free))
-            idx[row, slots[:n]] = free[:n]
+        kk = idx.shape[1]
+        order = np.argsort(d[rows], axis=1)[:, :2 * kk]                      # (R, <=2k) deepest first
+        sub = idx[rows]
+        free = ~np.any(order[:, :, None] == sub[:, None, :], axis=2)          # not chosen yet
+        comp = np.take_along_axis(order, np.argsort(~free, axis=1, kind="stable"), 1)  # free ones first
+        nfree = free.sum(axis=1)
+        dsub = dup[rows]
+        rank = np.cumsum(dsub, axis=1) - 1                                    # j-th unfilled slot
+        fill = dsub & (rank < nfree[:, None])
+        r_, s_ = np.nonzero(fill)
+        sub[r_, s_] = comp[r_, rank[r_, s_]]
+        idx[rows] = sub
     return idx
 
 
 def _pick(d: np.ndarray, pts: np.ndarray, k: int, patch: float, reach: np.ndarray
           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Selected (row, column) pairs and their depths: ``(rows, cols, dist)`` for entries < reach."""
+    reach = np.broadcast_to(reach, (d.shape[0], 1))
+    live = np.flatnonzero(d.min(axis=1) < reach[:, 0])      # rows with anything in reach
+    if not len(live):
+        z = np.zeros(0, np.int64)
+        return z, z.copy(), np.zeros(0)
+    d, pts, reach = d[live], pts[live], reach[live]
     idx = _select(d, pts, k, patch)
     dk = np.take_along_axis(d, idx, 1)
     ok = dk < reach
     ok[:, 1:] &= idx[:, 1:] != idx[:, :1]
     rows, slot = np.nonzero(ok)
-    return rows, idx[rows, slot], dk[rows, slot]
+    return live[rows], idx[rows, slot], dk[rows, slot]
 
 
 def collide(model: Model, state: State) -> Contacts:
@@ -198,7 +278,17 @@ def collide(model: Model, state: State) -> Contacts:
             emit(body, np.full(len(body), -1), pts, np.broadcast_to(n, pts.shape).copy(), dk, B + p, vi)
         # --- room distance field -------------------------------------------------------------------
         if model.has_room:
+            near = model.room_thickness + rad[aw, None] + spec[aw, None]
+            vm = vmask[aw]
             udf, grad = room_distance(model, Wv[aw])
+            if model.room_mesh is not None:
+                sel = vm & (udf < near + 0.5 * model.room_spacing)
+                if np.any(sel):
+                    de, ne = model.room_mesh.closest(
+                        Wv[aw][sel], np.broadcast_to(state.pos[aw][:, None, :], Wv[aw].shape)[sel],
+                        grad[sel])
+                    udf[sel] = de
+                    grad[sel] = ne
             d = udf - model.room_thickness - rad[aw, None]
             d = np.where(vmask[aw], d, np.inf)
             bi, vi, dk = _pick(d, Wv[aw], k, patch, spec[aw, None])

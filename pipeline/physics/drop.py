@@ -64,7 +64,11 @@ def gravity_frame(up: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(u, x), u])
 
 
-def _surface_points(room: dict) -> np.ndarray:
+def _surface_points(room: dict | np.ndarray) -> np.ndarray:
+    """(N, 3) float64 world grid nodes at the room surface; ``room`` may already be such points
+    (:func:`surface_points` computed once and passed to several of the functions below)."""
+    if isinstance(room, np.ndarray):
+        return room
     udf = np.asarray(room["udf"])
     sp = float(room["spacing"])
     ijk = np.argwhere(udf < 0.75 * sp)
@@ -73,7 +77,13 @@ def _surface_points(room: dict) -> np.ndarray:
     return np.asarray(room["origin"], float) + ijk * sp
 
 
-def room_frame(room: dict, up: np.ndarray) -> np.ndarray:
+def surface_points(room: dict) -> np.ndarray:
+    """(N, 3) float64 world grid nodes at the room surface (udf below 0.75 spacing), m; accepted in
+    place of the room by :func:`room_frame`, :func:`floor_height` and :func:`room_bounds`."""
+    return _surface_points(room)
+
+
+def room_frame(room: dict | np.ndarray, up: np.ndarray) -> np.ndarray:
     """(3, 3) world -> room frame: z = up, x/y = principal horizontal axes of the room surface (so the
     spawn box of a room whose walls are not aligned with the world axes stays inside the walls)."""
     R = gravity_frame(up)
@@ -85,7 +95,7 @@ def room_frame(room: dict, up: np.ndarray) -> np.ndarray:
     return Rz @ R
 
 
-def floor_height(room: dict, R_w2g: np.ndarray) -> float:
+def floor_height(room: dict | np.ndarray, R_w2g: np.ndarray) -> float:
     """Height (along the frame's z = up) of the floor: the most populated 1 cm height bin of the room
     surface among its lowest 30 % (the floor is the largest horizontal surface at the bottom)."""
     z = (_surface_points(room) @ R_w2g.T)[:, 2]
@@ -95,7 +105,7 @@ def floor_height(room: dict, R_w2g: np.ndarray) -> float:
     return float(e[np.argmax(h)] + 0.005)
 
 
-def room_bounds(room: dict, R_w2g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def room_bounds(room: dict | np.ndarray, R_w2g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Bounds (lo, hi) (3,) of the room surface in the frame ``R_w2g`` (0.5 / 99.5 percentiles of the
     grid nodes at the surface, so stray reconstruction blobs do not stretch them)."""
     g = _surface_points(room) @ R_w2g.T
@@ -188,11 +198,12 @@ def simulate_drop(bodies: list[Body], *, room: dict | None, up: np.ndarray, sett
     if bounds is None:
         if room is None:
             raise ValueError("simulate_drop needs a room or explicit spawn bounds")
-        R_w2g = room_frame(room, up)
-        bounds = room_bounds(room, R_w2g)
+        surf = surface_points(room)
+        R_w2g = room_frame(surf, up)
+        bounds = room_bounds(surf, R_w2g)
         if settings.floor_plane:
             # the shell's outer face (room_thickness above the floor) is where bodies rest elsewhere
-            fl = np.array([[*up, floor_height(room, R_w2g) + settings.room_thickness]])
+            fl = np.array([[*up, floor_height(surf, R_w2g) + settings.room_thickness]])
             planes = fl if planes is None else np.concatenate([np.asarray(planes, float).reshape(-1, 4), fl])
     else:
         R_w2g = gravity_frame(up)

@@ -65,12 +65,16 @@ def project_cone(p: np.ndarray, mu: np.ndarray) -> np.ndarray:
     mu
         (C,) friction coefficients.
     """
+    out = np.empty_like(p)
     pn = np.maximum(p[:, 0], 0.0)
-    pt = p[:, 1:]
-    m = np.linalg.norm(pt, axis=1)
+    out[:, 0] = pn
+    t1, t2 = p[:, 1], p[:, 2]
+    m = np.sqrt(t1 * t1 + t2 * t2)
     lim = mu * pn
     s = np.where(m > lim, lim / np.maximum(m, 1e-300), 1.0)
-    return np.concatenate([pn[:, None], pt * s[:, None]], axis=1)
+    out[:, 1] = t1 * s
+    out[:, 2] = t2 * s
+    return out
 
 
 def solve_contacts(model: Model, state: State, contacts: Contacts, vel_free: np.ndarray,
@@ -179,9 +183,19 @@ def solve_contacts(model: Model, state: State, contacts: Contacts, vel_free: np.
     theta = 1.0
     it = 0
     res = np.inf
+    p_new = np.empty(3 * K)
+    pv = p_new.reshape(K, 3)
     for it in range(1, opt.iterations + 1):
-        g = H(y) - c
-        p_new = project_cone((y - step * g).reshape(K, 3), mu).reshape(-1)
+        g = Jf @ (WfT @ y)
+        g += Rv * y
+        g -= c
+        z = (y - step * g).reshape(K, 3)
+        # project_cone, inlined (this loop is the solver's cost)
+        pn = np.maximum(z[:, 0], 0.0)
+        tm = np.sqrt(z[:, 1] * z[:, 1] + z[:, 2] * z[:, 2])
+        sc = np.minimum(1.0, mu * pn / np.maximum(tm, 1e-300))
+        pv[:, 0] = pn
+        np.multiply(z[:, 1:], sc[:, None], out=pv[:, 1:])
         dp = p_new - p
         res = float(np.max(np.abs(dp)))
         if g @ dp > 0:  # adaptive restart (O'Donoghue & Candes): momentum points uphill
@@ -191,7 +205,8 @@ def solve_contacts(model: Model, state: State, contacts: Contacts, vel_free: np.
             th2 = 0.5 * (1 + np.sqrt(1 + 4 * theta * theta))
             y = p_new + ((theta - 1) / th2) * dp
             theta = th2
-        p = p_new
+        p, p_new = p_new, p
+        pv = p_new.reshape(K, 3)
         if res < opt.tolerance:
             break
     dv = (Wf.T @ p).reshape(nd, 6)

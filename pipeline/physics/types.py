@@ -71,6 +71,8 @@ class Model:
     room_udf: np.ndarray         # (nx, ny, nz) float32, m, unsigned distance to the room surface
     room_thickness: float        # m, the surface counts as a shell of this half-thickness
     opt: Options = field(default_factory=Options)
+    room_mesh: object = None     # exact closest-point queries on the room surface
+    #                              (:class:`~pipeline.physics.collide.RoomMesh`), None = grid only
 
     @property
     def nbody(self) -> int:
@@ -117,6 +119,9 @@ class Body:
     inertia: np.ndarray          # (3, 3) float64, kg m^2, about the com, object-model frame axes
     friction: float = -1.0       # < 0: Options.friction
     radius: float = 0.0          # > 0 makes a sphere of this radius centred at com (vertices ignored)
+    # the body's hull in its body frame, computed once by build_model and reused by later models
+    # (a drop builds a new model every time; the hull does not change)
+    hull_cache: dict = field(default_factory=dict, compare=False, repr=False)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -242,7 +247,10 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
     planes
         (P, 4) static half-spaces ``n.x >= d`` (n need not be unit); None = none.
     room
-        Room proxy with ``origin`` (3,), ``spacing`` float and ``udf`` (nx, ny, nz), or None.
+        Room proxy with ``origin`` (3,), ``spacing`` float and ``udf`` (nx, ny, nz), or None. Optional:
+        ``mesh_vertices`` (V, 3) / ``mesh_faces`` (T, 3), the room surface for exact distances at
+        contacts (the grid's trilinear gradient near the surface is off by mm), or ``room_mesh``, a
+        prebuilt :class:`~pipeline.physics.collide.RoomMesh` (shared across drops of one room).
     room_thickness
         Half-thickness of the room surface shell, m (scan surfaces have no inside).
     opt
@@ -288,11 +296,17 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
             if len(pts) < 4:
                 raise InputError(f"physics model: body {i} has {len(pts)} vertices; a solid needs >= 4")
             pts_b = pts @ R_m2b.T + t_m2b
-            try:
-                vb, pb = hull_planes(pts_b, max_vertices=max_vertices)
-            except Exception as e:  # qhull errors: flat or degenerate point sets
-                raise InputError(f"physics model: body {i} vertices span no volume ({e}); "
-                                 f"a collider needs a 3D hull") from None
+            ck = (max_vertices, pts_b.tobytes())
+            if ck in b.hull_cache:
+                vb, pb = b.hull_cache[ck]
+            else:
+                try:
+                    vb, pb = hull_planes(pts_b, max_vertices=max_vertices)
+                except Exception as e:  # qhull errors: flat or degenerate point sets
+                    raise InputError(f"physics model: body {i} vertices span no volume ({e}); "
+                                     f"a collider needs a 3D hull") from None
+                b.hull_cache.clear()
+                b.hull_cache[ck] = (vb, pb)
             kinds.append(KIND_POLY)
             radii.append(0.0)
             bound = float(np.linalg.norm(vb, axis=1).max())
@@ -321,7 +335,7 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
         raise InputError("physics model: a static plane has a zero normal")
     pl = pl / nn[:, None]
     if room is not None:
-        udf = np.asarray(room["udf"], np.float32)
+        udf = np.ascontiguousarray(room["udf"], np.float32)
         spacing = float(room["spacing"])
         origin = np.asarray(room["origin"], float).reshape(3)
         if udf.ndim != 3 or min(udf.shape) < 2:
@@ -329,15 +343,22 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
         if not spacing > 0:
             raise InputError(f"room proxy: spacing = {spacing}; must be positive metres")
         _check_finite("room udf", udf)
+        room_mesh = room.get("room_mesh")
+        if room_mesh is None and "mesh_vertices" in room and "mesh_faces" in room:
+            from pipeline.physics.collide import RoomMesh
+
+            room_mesh = RoomMesh(room["mesh_vertices"], room["mesh_faces"])
     else:
         udf, spacing, origin = np.zeros((0, 0, 0), np.float32), 0.0, np.zeros(3)
+        room_mesh = None
     return Model(body_mass=np.array(masses, float).reshape(B), body_inertia=np.array(inertias).reshape(B, 3),
                  body_kind=np.array(kinds, np.int32).reshape(B), body_radius=np.array(radii).reshape(B),
                  body_friction=np.array(frics).reshape(B), body_verts=body_verts,
                  body_nvert=np.array([len(v) for v in verts], np.int32).reshape(B), body_planes=body_planes,
                  body_bound=np.array(bounds).reshape(B), body_R_m2b=np.array(Rs).reshape(B, 3, 3),
                  body_t_m2b=np.array(ts).reshape(B, 3), plane=pl, room_origin=origin,
-                 room_spacing=spacing, room_udf=udf, room_thickness=float(room_thickness), opt=opt)
+                 room_spacing=spacing, room_udf=udf, room_thickness=float(room_thickness), opt=opt,
+                 room_mesh=room_mesh)
 
 
 def make_state(model: Model, R_m2w: np.ndarray, t_m2w: np.ndarray, *, vel: np.ndarray | None = None,
