@@ -86,14 +86,11 @@ def _remove_non_finite(ms: "pymeshlab.MeshSet", log_: list[dict]) -> None:
     _apply(ms, log_, "remove non-finite vertices", ms.meshing_remove_selected_vertices_and_faces)
 
 
-def _remove_junk(ms: "pymeshlab.MeshSet", log_: list[dict], junk_diag_rel: float, junk_faces: int) -> None:
-    """Drop components that are small by diameter or face count (never the largest one)."""
-    from meshprep.inspect import face_components
-
-    v, f = _arrays(ms)
-    n, lab = face_components(f, len(v))
+def _junk_components(v: np.ndarray, f: np.ndarray, n: int, lab: np.ndarray, junk_diag_rel: float,
+                     junk_faces: int) -> np.ndarray:
+    """(n,) bool: components that are small by diameter or face count (never the largest one)."""
     if n <= 1:
-        return
+        return np.zeros(n, dtype=bool)
     diag = float(np.linalg.norm(v.max(0) - v.min(0)))
     sizes = np.bincount(lab, minlength=n)
     order = np.argsort(lab, kind="stable")
@@ -106,6 +103,20 @@ def _remove_junk(ms: "pymeshlab.MeshSet", log_: list[dict], junk_diag_rel: float
     # Few faces alone is junk only when tiny next to the whole (a 2-triangle mesh keeps both).
     junk = (cdiag < junk_diag_rel * diag) | ((sizes < junk_faces) & (sizes < 0.01 * len(f)))
     junk[np.argmax(sizes)] = False
+    return junk
+
+
+def _remove_junk(ms: "pymeshlab.MeshSet", log_: list[dict], junk_diag_rel: float, junk_faces: int,
+                 comps: tuple[int, np.ndarray] | None = None) -> None:
+    """Drop components that are small by diameter or face count (never the largest one).
+
+    ``comps`` (count, (F,) face labels) of the current mesh, when already known.
+    """
+    from meshprep.inspect import face_components
+
+    v, f = _arrays(ms)
+    n, lab = comps if comps is not None else face_components(f, len(v))
+    junk = _junk_components(v, f, n, lab, junk_diag_rel, junk_faces)
     if not junk.any():
         return
     _select_faces(ms, junk[lab])
@@ -113,14 +124,21 @@ def _remove_junk(ms: "pymeshlab.MeshSet", log_: list[dict], junk_diag_rel: float
     ms.meshing_remove_unreferenced_vertices()
 
 
-def _orient(ms: "pymeshlab.MeshSet", log_: list[dict], kind: str, cameras: np.ndarray | None) -> None:
-    """Flip whole components: objects to positive volume, scans towards the cameras."""
+def _orient(ms: "pymeshlab.MeshSet", log_: list[dict], kind: str, cameras: np.ndarray | None,
+            comps: tuple[int, np.ndarray] | None = None) -> bool:
+    """Flip whole components: objects to positive volume, scans towards the cameras.
+
+    ``comps`` (count, (F,) face labels) of the current mesh, when already known. Returns whether
+    faces were flipped.
+    """
     from meshprep.inspect import face_components
 
+    if kind != "object" and (cameras is None or not len(cameras)):
+        return False
     v, f = _arrays(ms)
     if len(f) == 0:
-        return
-    n, lab = face_components(f, len(v))
+        return False
+    n, lab = comps if comps is not None else face_components(f, len(v))
     c = 0.5 * (v.min(0) + v.max(0))
     a, b, d = v[f[:, 0]] - c, v[f[:, 1]] - c, v[f[:, 2]] - c
     if kind == "object":
@@ -129,18 +147,19 @@ def _orient(ms: "pymeshlab.MeshSet", log_: list[dict], kind: str, cameras: np.nd
     elif cameras is not None and len(cameras):
         score = camera_votes(v, f, lab, n, cameras)
         what = "orient components towards the cameras"
-    else:
-        return
+    else:  # pragma: no cover (returned above)
+        return False
     flip = score < 0
     if not flip.any():
-        return
+        return False
     _select_faces(ms, flip[lab])
     ms.meshing_invert_face_orientation(forceflip=True, onlyselected=True)
     ms.set_selection_none()
     log_.append({"step": what, "faces_flipped": int(flip[lab].sum()), "components_flipped": int(flip.sum())})
+    return True
 
 
-def _drop_non_orientable(ms: "pymeshlab.MeshSet", log_: list[dict]) -> None:
+def _drop_non_orientable(ms: "pymeshlab.MeshSet", log_: list[dict], topo: dict | None = None) -> bool:
     """Remove the faces on edges still inconsistently oriented after coherent re-orientation.
 
     Such edges remain only on non-orientable strips (Moebius-like TSDF artefacts); removing the faces
@@ -148,15 +167,37 @@ def _drop_non_orientable(ms: "pymeshlab.MeshSet", log_: list[dict]) -> None:
     """
     from meshprep.inspect import edge_topology
 
-    v, f = _arrays(ms)
-    topo = edge_topology(f, len(v))
+    if topo is None:
+        v, f = _arrays(ms)
+        topo = edge_topology(f, len(v))
     bad = topo["same_direction"]
     if not bad.any():
-        return
+        return False
     mask = bad[topo["inverse"]].reshape(-1, 3).any(axis=1)
     _select_faces(ms, mask)
     _apply(ms, log_, "remove faces on non-orientable edges", ms.meshing_remove_selected_faces)
     ms.meshing_remove_unreferenced_vertices()
+    return True
+
+
+# inspect counts that a repair pass would change; when all are zero, no hole of the size closed is
+# left, no component is junk and every component is oriented (the pass ends by orienting), the next
+# pass is provably a no-op and is skipped.
+_PASS_DEFECTS = ("non_finite_vertices", "duplicate_vertices", "duplicate_faces", "degenerate_faces",
+                 "unreferenced_vertices", "non_manifold_edges", "non_manifold_vertices",
+                 "inconsistent_orientation_edges")
+
+
+def _settled(stats: dict, extra: dict, v: np.ndarray, f: np.ndarray, holes: int, junk_diag_rel: float,
+             junk_faces: int) -> bool:
+    """Whether another repair pass would change nothing (from :func:`analyse_arrays` results)."""
+    if stats["faces"] == 0 or not extra["all_faces"] or any(stats[k] for k in _PASS_DEFECTS):
+        return False
+    loops = extra["loops"]
+    if holes >= 3 and len(loops) and int(loops.min()) <= holes:
+        return False
+    return not _junk_components(v, f, extra["n_components"], extra["labels"], junk_diag_rel,
+                                junk_faces).any()
 
 
 def camera_votes(vertices: np.ndarray, faces: np.ndarray, labels: np.ndarray, n: int,
@@ -246,22 +287,48 @@ def repair_meshset(ms: "pymeshlab.MeshSet", *, kind: str = "auto", cameras: np.n
     dict with ``kind``, ``kind_reason``, ``passes`` and ``changes`` (a list of steps with the change
     in vertex/face counts).
     """
+    return _repair_meshset(ms, kind=kind, cameras=cameras, max_hole_edges=max_hole_edges,
+                           junk_diag_rel=junk_diag_rel, junk_faces=junk_faces)[0]
+
+
+def _repair_meshset(ms: "pymeshlab.MeshSet", *, kind: str, cameras: np.ndarray | None,
+                    max_hole_edges: int | None, junk_diag_rel: float,
+                    junk_faces: int) -> tuple[dict, dict]:
+    """:func:`repair_meshset`, also returning the :func:`~meshprep.inspect.inspect_arrays` statistics
+    of the result (without the self-intersection count).
+
+    Each pass ends with one topology analysis of its result; it serves the non-orientable-edge
+    check, the orientation (components), the test whether another pass could change anything
+    (:func:`_settled`; a settled mesh ends the loop without a confirming pass), the next pass's junk
+    check when its cleaning filters changed nothing, and the final statistics.
+    """
+    from meshprep.inspect import analyse_arrays, boundary_loops, edge_topology
+
     if kind not in KINDS:
         raise InputError(f"kind {kind!r} is not one of {', '.join(KINDS)}")
     changes: list[dict] = []
     _remove_non_finite(ms, changes)
     reason = "given"
     passes = 0
+    stats: dict | None = None
+    extra: dict | None = None
+    before = _arrays(ms)
     for passes in range(1, constants.REPAIR_MAX_PASSES + 1):
-        before = _arrays(ms)
         n_logged = len(changes)
         _apply(ms, changes, "remove duplicate vertices", ms.meshing_remove_duplicate_vertices)
         _apply(ms, changes, "remove duplicate faces", ms.meshing_remove_duplicate_faces)
         _apply(ms, changes, "remove zero-area faces", ms.meshing_remove_null_faces)
         _apply(ms, changes, "remove unreferenced vertices", ms.meshing_remove_unreferenced_vertices)
         if ms.current_mesh().face_number() == 0:
+            stats = None
             break
-        _remove_junk(ms, changes, junk_diag_rel, junk_faces)
+        # These filters only delete: unchanged counts mean an unchanged mesh, so the last pass's
+        # components still hold.
+        comps = None
+        if (extra is not None and extra["all_faces"] and len(changes) == n_logged
+                and _counts(ms) == (len(before[0]), len(before[1]))):
+            comps = (extra["n_components"], extra["labels"])
+        _remove_junk(ms, changes, junk_diag_rel, junk_faces, comps)
         _apply(ms, changes, "repair non-manifold edges (remove faces)",
                ms.meshing_repair_non_manifold_edges, method=0)
         # Split copies are moved slightly apart, so that the duplicate-vertex pass does not merge them
@@ -274,6 +341,7 @@ def repair_meshset(ms: "pymeshlab.MeshSet", *, kind: str = "auto", cameras: np.n
                 v, f = _arrays(ms)
                 kind, reason = decide_kind(v, f, cameras)
         if ms.current_mesh().face_number() == 0:
+            stats = None
             break
         holes = max_hole_edges if max_hole_edges is not None else (
             constants.OBJECT_MAX_HOLE_EDGES if kind == "object" else constants.SCAN_MAX_HOLE_EDGES)
@@ -294,19 +362,42 @@ def repair_meshset(ms: "pymeshlab.MeshSet", *, kind: str = "auto", cameras: np.n
         except Exception as e:
             if type(e).__name__ != "PyMeshLabException":
                 raise
-        f_after = _arrays(ms)[1]
-        if f_before.shape == f_after.shape and not np.array_equal(f_before, f_after):
-            n_flip = int((f_before != f_after).any(axis=1).sum())
+        v, f = _arrays(ms)
+        if f_before.shape == f.shape and not np.array_equal(f_before, f):
+            n_flip = int((f_before != f).any(axis=1).sum())
             changes.append({"step": "orient faces coherently", "faces_flipped": n_flip})
-        _drop_non_orientable(ms, changes)
-        _orient(ms, changes, kind, cameras)
-        after = _arrays(ms)
-        if (before[0].shape == after[0].shape and before[1].shape == after[1].shape
-                and np.array_equal(before[0], after[0]) and np.array_equal(before[1], after[1])):
+        del f_before
+        topo = edge_topology(f, len(v))
+        if _drop_non_orientable(ms, changes, topo):
+            v, f = _arrays(ms)
+            topo = edge_topology(f, len(v))
+        # Full analysis only when the pass may have settled (no non-manifold edge, no hole small
+        # enough to close): otherwise another pass follows anyway.
+        bnd = topo["edges"][topo["counts"] == 1]
+        loops = boundary_loops(bnd, len(v)) if holes >= 3 else np.zeros(0, dtype=np.int64)
+        may_settle = not (topo["counts"] > 2).any() and not (len(loops) and int(loops.min()) <= holes)
+        stats = extra = None
+        if may_settle:
+            stats, extra = analyse_arrays(v, f, self_intersections=False, topo=topo)
+        del topo, bnd
+        comps = (extra["n_components"], extra["labels"]) if extra and extra["all_faces"] else None
+        if _orient(ms, changes, kind, cameras, comps):
+            v, f = _arrays(ms)            # whole components flipped: re-analyse (rare)
+            stats = extra = None
+            if may_settle:
+                stats, extra = analyse_arrays(v, f, self_intersections=False)
+        unchanged = (before[0].shape == v.shape and before[1].shape == f.shape
+                     and np.array_equal(before[0], v) and np.array_equal(before[1], f))
+        before = (v, f)
+        if unchanged:
             del changes[n_logged:]  # steps that undid each other (fill, then drop, a degenerate hole)
             break
+        if stats is not None and _settled(stats, extra, v, f, holes, junk_diag_rel, junk_faces):
+            break
     ms.set_selection_none()
-    return {"kind": kind, "kind_reason": reason, "passes": passes, "changes": changes}
+    if stats is None:
+        stats = analyse_arrays(*_arrays(ms), self_intersections=False)[0]
+    return {"kind": kind, "kind_reason": reason, "passes": passes, "changes": changes}, stats
 
 
 def check_repaired(stats: dict, kind: str, where: str) -> None:
@@ -361,7 +452,7 @@ def repair(in_path: str | Path, out_path: str | Path, *, kind: str = "auto",
         The result does not meet ``kind``'s requirements (the report is still written, with
         ``ok: false``; no mesh is written).
     """
-    from meshprep.inspect import inspect_arrays
+    from meshprep.inspect import count_self_intersections, inspect_arrays
     from meshprep.io import check_writable, load_cameras, load_meshset, save_meshset, write_json
 
     t0 = time.perf_counter()
@@ -370,9 +461,13 @@ def repair(in_path: str | Path, out_path: str | Path, *, kind: str = "auto",
         None if cameras is None else np.asarray(cameras, dtype=np.float64).reshape(-1, 3))
     ms = load_meshset(in_path)
     before = inspect_arrays(*_arrays(ms), self_intersections=self_intersections)
-    info = repair_meshset(ms, kind=kind, cameras=cams, max_hole_edges=max_hole_edges,
-                          junk_diag_rel=junk_diag_rel, junk_faces=junk_faces)
-    after = inspect_arrays(*_arrays(ms), self_intersections=self_intersections)
+    info, after = _repair_meshset(ms, kind=kind, cameras=cams, max_hole_edges=max_hole_edges,
+                                  junk_diag_rel=junk_diag_rel, junk_faces=junk_faces)
+    # The last pass analysed the result already; only the self-intersection count is left to do.
+    if self_intersections is None:
+        self_intersections = 0 < after["faces"] <= constants.SELF_INTERSECTION_MAX_FACES
+    if self_intersections and after["faces"] and after["non_finite_vertices"] == 0:
+        after["self_intersecting_faces"] = count_self_intersections(*_arrays(ms))
     rep = {"command": "repair", "input": str(in_path), "output": str(out_path), **info,
            "before": before, "after": after}
     report_path = Path(report) if report else out_path.with_name(out_path.name + ".report.json")
