@@ -3,7 +3,8 @@
 Items: ``<scene>/room`` per scene and ``objects`` once. Outputs:
 
 - ``RUN/prep/<scene>/room_proxy.npz``: meshprep's room distance grid (``origin``, ``spacing``,
-  ``udf``; ``sdf``/``sdf_valid`` where the cameras make a sign reliable);
+  ``udf``; ``sdf``/``sdf_valid`` where the cameras make a sign reliable) plus the room surface
+  ``mesh_vertices`` (V, 3) float32 / ``mesh_faces`` (T, 3) int32 for exact contact distances;
 - ``RUN/prep/<scene>/room_trace.ply``: the room simplified within ``prep.room_max_error``;
 - ``RUN/prep/objects/obj_<id>.npz``: meshprep's object proxy (hull, parts, samples, ``mass``, ``com``,
   ``inertia`` at ``prep.density``). An object that meshprep cannot close falls back to the mass
@@ -100,6 +101,9 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     scan = load_scan(ctx.run_dir, scene)
     v, f, _ = load_room_mesh(scan)
     grid = room_distance_grid(v, f, spacing=cfg.room_spacing, cameras=scan.T_c2w[:, :3, 3], seed=0)
+    # the surface itself: physics measures contacts exactly against it (the grid is the broad phase)
+    grid["mesh_vertices"] = np.asarray(v, np.float32)
+    grid["mesh_faces"] = np.asarray(f, np.int32)
     atomic_save_npz(room_proxy_path(ctx.run_dir, scene), **grid)
     trace = ctx.stage_dir / scene / "room_trace.ply"
     # meshprep writes its report (with timings) beside its output: keep both out of the run folder, so

@@ -115,8 +115,9 @@ class RoomMesh:
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
-        import open3d as o3d
+        from pipeline.reconstruct import open3d_module
 
+        o3d = open3d_module()
         self._o3d = o3d
         self._scene = o3d.t.geometry.RaycastingScene()
         self._scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
