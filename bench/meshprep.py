@@ -15,6 +15,9 @@
 5. Room distance grid: banded exact+EDT UDF against the all-exact grid (time and max error).
 
 Run: ``nice .venv/bin/python -m bench.meshprep`` (writes bench/results/meshprep.json and .png).
+``--only-2m [--baseline-ref REF]`` re-measures part 3 only and merges it into the existing JSON
+(the other parts' figures and series are kept as they were); with ``--baseline-ref`` the meshprep
+package of git revision REF is measured in the same run as the baseline ("before").
 """
 
 from __future__ import annotations
@@ -165,7 +168,124 @@ def child_2m(work: str) -> None:
         "total_wall_s": t2 - t0, "total_cpu_s": c2 - c0 + kids.ru_utime + kids.ru_stime, "repair_cpu_s": c1 - c0,
         "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9,
         "rss_before_repair_gb": rss_before * 1024 / 1e9, "p95_rel_10x": rs["deviation"]["p95_rel"],
-        "repair_changes": rr["changes"]}))
+        "repair_changes": rr["changes"], "repair_passes": rr["passes"],
+        "meshprep_path": str(Path(sys.modules["meshprep"].__file__).parent)}))
+
+
+def run_child_2m(work: str, meshprep_root: Path | None = None) -> dict:
+    """Run :func:`child_2m` in a fresh process; ``meshprep_root``: a folder whose ``meshprep``
+    package is imported instead of this checkout's (the baseline revision)."""
+    repo = Path(__file__).resolve().parents[1]
+    path = [str(meshprep_root)] if meshprep_root else []
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(path + [str(repo)])}
+    # `python -m` puts the working folder first on sys.path: run in the baseline's folder.
+    load0 = os.getloadavg()[0]
+    out = subprocess.run([sys.executable, "-m", "bench.meshprep", "--child-2m", work],
+                         capture_output=True, text=True, env=env, check=False,
+                         cwd=str(meshprep_root or repo))
+    if out.returncode != 0:
+        raise RuntimeError(f"2M child failed: {out.stderr[-2000:]}")
+    big = json.loads(out.stdout.strip().splitlines()[-1])
+    # What the run would take with the 2 cores to itself: the single-threaded parts' CPU time plus
+    # half of the two slab workers' CPU time.
+    big["estimated_wall_2_free_cores_s"] = (big["total_cpu_s"] - big["children_cpu_s"]
+                                            + big["children_cpu_s"] / 2)
+    big["load_average_start"] = load0
+    big["load_average_end"] = os.getloadavg()[0]
+    return big
+
+
+def two_million_figures(big: dict) -> dict:
+    peak = max(big["peak_rss_gb"], big["peak_tree_rss_gb"])
+    return {"two_million": big,
+            "two_million_memory_target_met": bool(peak <= 4),
+            "two_million_time_target_met_wall": bool(big["total_wall_s"] <= 60),
+            "two_million_time_target_met_2_free_cores_estimate": bool(
+                big["estimated_wall_2_free_cores_s"] <= 60)}
+
+
+def plot_with_2m(res: BenchResult, png: Path) -> None:
+    """Redraw ``png``: the accuracy/speed chart, and beside it the 2M-face repair+simplify seconds
+    (wall on the shared machine, CPU, 2-free-core estimate), before and after when both exist."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 4.5), dpi=110, gridspec_kw={"width_ratios": [3, 2]})
+    for name, pts in res.series.items():
+        ax.plot([p["speed"] for p in pts], [p["accuracy"] for p in pts], "o-", label=name)
+        for p in pts:
+            if p["label"]:
+                ax.annotate(p["label"], (p["speed"], p["accuracy"]), fontsize=7,
+                            textcoords="offset points", xytext=(3, 3))
+            if p["baseline"]:
+                ax.plot([p["speed"]], [p["accuracy"]], "k*", ms=12)
+    ax.set_xlabel(res.speed_label)
+    ax.set_ylabel(res.accuracy_label + " (lower is better)")
+    ax.set_title("simplification: accuracy against speed (star = baseline)", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
+    runs = [(k, res.figures[k]) for k in ("two_million_before", "two_million") if k in res.figures]
+    keys = [("total_wall_s", "wall (shared)"), ("total_cpu_s", "CPU total"),
+            ("repair_cpu_s", "repair CPU"), ("estimated_wall_2_free_cores_s", "2 free cores (est.)")]
+    width = 0.8 / max(len(runs), 1)
+    for i, (k, big) in enumerate(runs):
+        xs = np.arange(len(keys)) + i * width
+        bx.bar(xs, [big[q] for q, _ in keys], width, label="before" if k.endswith("before") else "after")
+        for x, (q, _) in zip(xs, keys):
+            bx.annotate(f"{big[q]:.0f}", (x, big[q]), ha="center", fontsize=7, textcoords="offset points",
+                        xytext=(0, 2))
+    bx.axhline(60, color="r", ls="--", lw=1, label="target 60 s")
+    bx.set_xticks(np.arange(len(keys)) + width * (len(runs) - 1) / 2, [t for _, t in keys], fontsize=7)
+    bx.set_ylabel("seconds")
+    bx.set_title("2M faces: repair + simplify 10x", fontsize=9)
+    bx.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(png)
+    plt.close(fig)
+
+
+def only_2m(baseline_ref: str | None) -> int:
+    """Re-measure part 3 (and optionally a baseline revision) into the existing results."""
+    from bench.common import RESULTS
+
+    jpath = RESULTS / "meshprep.json"
+    old = json.loads(jpath.read_text()) if jpath.exists() else {}
+    res = BenchResult("meshprep", speed_label=old.get("speed_label", "seconds per simplification"),
+                      accuracy_label=old.get("accuracy_label", "p95 symmetric Hausdorff, % of bbox diagonal"),
+                      lower_is_better=True, series=old.get("series", {}),
+                      figures=old.get("figures", {}), notes=old.get("notes", []))
+    repo = Path(__file__).resolve().parents[1]
+    with tempfile.TemporaryDirectory() as tmp:
+        if baseline_ref:
+            base_dir = Path(tmp) / "baseline"
+            base_dir.mkdir()
+            tar = subprocess.run(["git", "-C", str(repo), "archive", baseline_ref, "meshprep"],
+                                 capture_output=True, check=True).stdout
+            subprocess.run(["tar", "-x", "-C", str(base_dir)], input=tar, check=True)
+            before = run_child_2m(tmp, base_dir)
+            before["meshprep_revision"] = baseline_ref
+            res.figures["two_million_before"] = before
+        after = run_child_2m(tmp)
+    after["meshprep_revision"] = subprocess.run(  # the last commit that changed meshprep/
+        ["git", "-C", str(repo), "log", "-1", "--format=%h", "--", "meshprep"],
+        capture_output=True, text=True).stdout.strip()
+    res.figures.update(two_million_figures(after))
+    if "two_million_before" in res.figures:
+        b = res.figures["two_million_before"]
+        res.figures["two_million_after_vs_before"] = {
+            k: round(after[k] / b[k], 3) for k in ("total_wall_s", "total_cpu_s", "repair_cpu_s",
+                                                  "estimated_wall_2_free_cores_s", "peak_tree_rss_gb")}
+    note = ("2M part re-measured alone (--only-2m); 'two_million_before' is the baseline revision "
+            "measured in the same run, one after the other on the same shared machine.")
+    if note not in res.notes:
+        res.notes.append(note)
+    _, png = res.write()
+    plot_with_2m(res, png)
+    print(json.dumps({k: v for k, v in res.figures.items() if k.startswith("two_million")}, indent=1,
+                     default=str))
+    return 0
 
 
 def mass_check() -> dict:
@@ -209,6 +329,9 @@ def main() -> int:
     if len(sys.argv) > 2 and sys.argv[1] == "--child-2m":
         child_2m(sys.argv[2])
         return 0
+    if len(sys.argv) > 1 and sys.argv[1] == "--only-2m":
+        ref = sys.argv[3] if len(sys.argv) > 3 and sys.argv[2] == "--baseline-ref" else None
+        return only_2m(ref)
     from meshprep.io import meshset_from_arrays
     from meshprep.repair import repair
 
@@ -277,23 +400,10 @@ def main() -> int:
         rv, rf = load_arrays(work / "room.ply")
         res.figures["room_udf"] = udf_check(rv, rf, cams)
         # 3. 2M faces in a child process (its own peak RSS).
-        env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
-        out = subprocess.run([sys.executable, "-m", "bench.meshprep", "--child-2m", tmp],
-                             capture_output=True, text=True, env=env, check=False)
-        if out.returncode != 0:
-            res.notes.append(f"2M child failed: {out.stderr[-2000:]}")
-        else:
-            big = json.loads(out.stdout.strip().splitlines()[-1])
-            peak = max(big["peak_rss_gb"], big["peak_tree_rss_gb"])
-            # What the run would take with the 2 cores to itself: the single-threaded parts' CPU
-            # time plus half of the two slab workers' CPU time.
-            big["estimated_wall_2_free_cores_s"] = (big["total_cpu_s"] - big["children_cpu_s"]
-                                                    + big["children_cpu_s"] / 2)
-            res.figures["two_million"] = big
-            res.figures["two_million_memory_target_met"] = bool(peak <= 4)
-            res.figures["two_million_time_target_met_wall"] = bool(big["total_wall_s"] <= 60)
-            res.figures["two_million_time_target_met_2_free_cores_estimate"] = bool(
-                big["estimated_wall_2_free_cores_s"] <= 60)
+        try:
+            res.figures.update(two_million_figures(run_child_2m(tmp)))
+        except RuntimeError as e:
+            res.notes.append(str(e))
     res.figures["mass_properties"] = mass_check()
     res.figures["mass_properties_max_rel_err"] = max(
         max(x["volume_rel_err"], x["inertia_rel_err"]) for x in res.figures["mass_properties"].values())
@@ -306,6 +416,7 @@ def main() -> int:
         "2M figures give wall and CPU seconds.",
     ]
     j, p = res.write()
+    plot_with_2m(res, p)
     print(json.dumps(res.figures, indent=1, default=str)[:4000])
     print(j, p)
     return 0

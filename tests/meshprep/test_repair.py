@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from meshprep import stress
+from meshprep import constants, stress
 from meshprep.cli import main
 from meshprep.errors import InputError, RepairError
 from meshprep.inspect import inspect
@@ -130,3 +130,24 @@ def test_lmo_model_is_an_object(shared_data, tmp_path):
         rep = repair(p, tmp_path / p.name)
         assert rep["kind"] == "object" and rep["after"]["watertight"]
         assert inspect(tmp_path / p.name)["vertex_colors"]
+
+
+@pytest.mark.parametrize("name", ["holes", "flipped", "bowtie", "duplicates", "junk", "terrain"])
+def test_repair_statistics_are_those_of_the_result(name):
+    """The repair loop reuses its last topology analysis as the 'after' statistics and skips the
+    confirming pass when that analysis proves it a no-op: the statistics must equal a fresh
+    inspection of the result, and a further pass must change nothing."""
+    from meshprep.inspect import inspect_arrays
+    from meshprep.io import arrays_of
+    from meshprep.repair import _repair_meshset, repair_meshset
+
+    v, f = stress.terrain(60) if name == "terrain" else stress.generators()[name][0]()
+    ms = meshset_from_arrays(v, f)
+    info, stats = _repair_meshset(ms, kind="auto", cameras=None, max_hole_edges=None,
+                                  junk_diag_rel=constants.JUNK_COMPONENT_DIAG_REL,
+                                  junk_faces=constants.JUNK_COMPONENT_FACES)
+    result = arrays_of(ms)
+    assert stats == inspect_arrays(*result, self_intersections=False)
+    again = repair_meshset(ms, kind=info["kind"])
+    assert again["changes"] == [] and again["passes"] == 1
+    assert _same(result, arrays_of(ms))
