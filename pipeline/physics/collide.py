@@ -8,7 +8,9 @@ from tunnelling through thin surfaces (the CCD backstop in :mod:`pipeline.physic
 
 * body - plane: hull vertices (sphere centres minus the radius) against each half-space;
 * body - room: hull vertices against the room's unsigned distance field minus the shell thickness
-  (scan surfaces are open, one-sided and paper thin); normal = gradient of the field;
+  (scan surfaces are open, one-sided and paper thin); normal = gradient of the field. With the room
+  mesh (:class:`RoomMesh`), vertices the grid puts within reach are re-measured exactly (closest point
+  on the mesh; a vertex has crossed the sheet when the sheet cuts the segment from its body's centre);
 * body - body: hull vertices of one body against the face planes of the other, both ways (the signed
   distance of a point to a convex polytope is the largest plane distance); spheres by centre distance.
 
@@ -123,8 +125,8 @@ class RoomMesh:
         self._scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
                                   o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)))
 
-    def closest(self, points: np.ndarray, centres: np.ndarray | None = None,
-                hint: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def closest(self, points: np.ndarray, centres: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
         """Distance to the surface and the contact normal of ``points``.
 
         Parameters
@@ -133,14 +135,10 @@ class RoomMesh:
             (N, 3) float64 world points, m.
         centres
             (N, 3) float64 world centres of the bodies owning the points, or None. A scan surface has
-            no inside, so the side a point belongs on is the side its body's centre is on: where the
-            closest point lies inside a face and the point is on the other side of that face than its
-            centre, the point has crossed the sheet and its distance is negative (normal towards the
-            centre's side). Without centres, distances are unsigned.
-        hint
-            (N, 3) float64 directions away from the surface from a coarser source (the grid's
-            gradient), or None: where the closest point is on a face's edge or corner (holes' borders,
-            ragged scan edges) and the exact direction opposes the hint, the point has crossed too.
+            no inside, so a point has crossed a sheet when the sheet cuts the segment from its body's
+            centre to it (the segment lies inside the convex body): then its distance is minus its
+            depth behind the sheet that was cut, and its normal that sheet's face normal towards the
+            centre. Without centres, distances are unsigned.
 
         Returns
         -------
@@ -149,8 +147,8 @@ class RoomMesh:
         """
         if len(points) == 0:
             return np.zeros(0), np.zeros((0, 3))
-        r = self._scene.compute_closest_points(
-            self._o3d.core.Tensor(np.ascontiguousarray(points, np.float32)))
+        o3d = self._o3d
+        r = self._scene.compute_closest_points(o3d.core.Tensor(np.ascontiguousarray(points, np.float32)))
         cp = r["points"].numpy().astype(float)
         v = points - cp
         d = np.linalg.norm(v, axis=1)
@@ -159,13 +157,19 @@ class RoomMesh:
         n = np.where((d > 1e-6)[:, None], v / np.maximum(d, 1e-300)[:, None], fn)
         if centres is None:
             return d, n
-        uv = r["primitive_uvs"].numpy().astype(float)
-        interior = (uv[:, 0] > 1e-4) & (uv[:, 1] > 1e-4) & (uv[:, 0] + uv[:, 1] < 1 - 1e-4)
-        crossed = interior & (np.sum((centres - cp) * fn, axis=1) < 0)
-        if hint is not None:
-            crossed |= ~interior & (np.sum(n * hint, axis=1) < 0)
-        d = np.where(crossed, -d, d)
-        n = np.where((crossed & interior)[:, None], -fn, np.where(crossed[:, None], -n, n))
+        seg = points - centres
+        hit = self._scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(
+            np.concatenate([centres, seg], axis=1), np.float32)))
+        t = hit["t_hit"].numpy().astype(float)
+        crossed = t < 1.0
+        if np.any(crossed):
+            hn = hit["primitive_normals"].numpy().astype(float)[crossed]
+            sg = seg[crossed]
+            hn *= np.where(np.sum(hn * sg, axis=1) > 0, -1.0, 1.0)[:, None]   # towards the centre
+            depth = np.abs(np.sum((1.0 - t[crossed])[:, None] * sg * hn, axis=1))
+            d = d.copy()
+            d[crossed] = -depth
+            n[crossed] = hn
         return d, n
 
 
@@ -286,8 +290,7 @@ def collide(model: Model, state: State) -> Contacts:
                 sel = vm & (udf < near + 0.5 * model.room_spacing)
                 if np.any(sel):
                     de, ne = model.room_mesh.closest(
-                        Wv[aw][sel], np.broadcast_to(state.pos[aw][:, None, :], Wv[aw].shape)[sel],
-                        grad[sel])
+                        Wv[aw][sel], np.broadcast_to(state.pos[aw][:, None, :], Wv[aw].shape)[sel])
                     udf[sel] = de
                     grad[sel] = ne
             d = udf - model.room_thickness - rad[aw, None]

@@ -424,6 +424,7 @@ def _tilted_sheet_room(deg=15.0, half=0.5, spacing=0.02, offset=0.007):
     return room, n, c
 
 
+@pytest.mark.slow   # the first open3d import takes ~5 s here
 def test_room_mesh_gives_exact_distance_normal_and_sheet_side():
     from pipeline.physics.collide import RoomMesh
 
