@@ -13,6 +13,7 @@ import logging
 import math
 import os
 import platform
+import signal
 import sys
 import time
 from pathlib import Path
@@ -249,10 +250,20 @@ def _setup_logging(args: argparse.Namespace) -> None:
                         force=True)
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def install_sigterm_handler() -> None:
+    """Treat SIGTERM like Ctrl-C: stop worker processes, keep finished items, exit 130."""
+    signal.signal(signal.SIGTERM, _interrupt)
+
+
 def main(argv: list[str] | None = None) -> int:
     # Open3D's OpenMP threads spin while they wait; on a shared or busy machine that made TSDF fusion
     # 10-20x slower. Set before anything imports open3d; a value the user set wins.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    install_sigterm_handler()
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args)

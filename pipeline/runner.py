@@ -179,6 +179,18 @@ def _run_on_ray(cfg: Config, run_dir: str, cfg_dict: dict, stage_ref: str, todo:
         yield ray.get(done[0])
 
 
+def _terminate_workers(pool: cf.ProcessPoolExecutor) -> None:
+    # ProcessPoolExecutor has no public way to stop running tasks; its worker processes are in the
+    # private ``_processes`` (stable since Python 3.2).
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        if p.is_alive():
+            p.terminate()
+    for p in procs:
+        p.join(timeout=10)
+
+
 def _workers(cfg: Config) -> int:
     n = cfg.run.workers
     return (os.cpu_count() or 1) if n == 0 else n
@@ -245,10 +257,18 @@ def run_stage(run_dir: Path, cfg: Config, stage: Stage,
     else:
         # spawn, not fork: OpenGL/Embree state must never be shared with a forked child.
         ctx_mp = multiprocessing.get_context("spawn")
-        with cf.ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx_mp) as pool:
+        pool = cf.ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx_mp)
+        try:
             futs = [pool.submit(execute_item, str(run_dir), cfg_dict, stage_ref, it) for it in todo]
             for fut in cf.as_completed(futs):
                 record(*fut.result())
+        except BaseException:
+            # Interrupted (Ctrl-C, SIGTERM) or failed: stop the workers now instead of letting them
+            # finish their items in the background. Finished items are kept; the ones cut short
+            # left only temp files, which the next run removes and redoes.
+            _terminate_workers(pool)
+            raise
+        pool.shutdown(wait=True)
     if stage.finish is not None:  # also after failures: finish what can be finished
         stage.finish(ctx, item_results(run_dir, stage.name))
     report.seconds = time.perf_counter() - t0
