@@ -58,6 +58,7 @@ from pipeline.types import ObjectModel, Placement, Scan
 log = logging.getLogger(__name__)
 
 SCENE_DEPTH_DIR = "scene_depth"
+REAL_DEPTH_DIR = "real_depth"
 # Objects are rendered in windows of at most TILE x TILE pixels (one fixed-size GL context): reading
 # back and linearising a whole frame per object would cost more than drawing most objects.
 TILE = 256
@@ -70,6 +71,11 @@ TILE = 256
 def frame_stem(run_dir: str | Path, scene: str, drop: int, frame: int) -> Path:
     """``RUN/raster/<scene>/drop<NNNN>/f<frame:06d>`` (add ``.npz`` / ``.json``)."""
     return Path(run_dir) / "raster" / scene / f"drop{drop:04d}" / f"f{frame:06d}"
+
+
+def real_depth_path(run_dir: str | Path, scene: str, frame: int) -> Path:
+    """Cache of a frame's decoded sensor depth (metres, colour resolution), shared by every drop."""
+    return Path(run_dir) / "raster" / scene / REAL_DEPTH_DIR / f"f{frame:06d}.npz"
 
 
 def scene_depth_path(run_dir: str | Path, scene: str, frame: int) -> Path:
@@ -505,8 +511,28 @@ def cached_scene_depth(run_dir: Path, scan: Scan, frame: int, K: np.ndarray, wid
     return d
 
 
+def cached_real_depth(run_dir: Path, scan: Scan, frame: int, width: int, height: int) -> np.ndarray | None:
+    """The sensor depth of ``frame`` in metres at (width, height), or None when the frame has none.
+
+    Decoding and registering the depth image costs more than the rest of a frame's fusion, and every
+    drop needs the same frame's depth: it is decoded once and cached like the room depth.
+    """
+    if not scan.depth_paths[frame]:
+        return None
+    path = real_depth_path(run_dir, scan.name, frame)
+    if path.is_file():
+        d = load_npz(path)["depth"]
+        if d.shape == (height, width):
+            return d
+    from pipeline.ingest import read_depth
+
+    d = np.ascontiguousarray(resize_nearest(read_depth(scan, frame), width, height), dtype=np.float32)
+    atomic_save_npz(path, depth=d)
+    return d
+
+
 def run_item(ctx: StageContext, item: Item) -> dict:
-    from pipeline.ingest import load_objects, load_scan, read_depth
+    from pipeline.ingest import load_objects, load_scan
     from pipeline.render_gl import shared_rasterizer
 
     cfg = ctx.cfg.raster
@@ -524,15 +550,10 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     keys = ensure_objects(rasterizer, [objects[i] for i in sorted(set(int(i) for i in placement.obj_ids))])
     K, w, h = scaled_camera(scan.K[frame], scan.width, scan.height, cfg.image_scale)
 
-    def real() -> np.ndarray | None:
-        if not scan.depth_paths[frame]:
-            return None
-        return resize_nearest(read_depth(scan, frame), w, h)
-
     res = render_frame(rasterizer, K=K, T_c2w=scan.T_c2w[frame], width=w, height=h, placement=placement,
                        mesh_keys=keys,
                        scene_depth=lambda: cached_scene_depth(ctx.run_dir, scan, frame, K, w, h, rasterizer),
-                       real_depth=real, cfg=cfg)
+                       real_depth=lambda: cached_real_depth(ctx.run_dir, scan, frame, w, h), cfg=cfg)
     doc = frame_doc(res, scene=scene, drop=drop, frame=frame, frame_id=int(scan.frame_ids[frame]),
                     fusion=cfg.real_depth_fusion)
     save_frame(frame_stem(ctx.run_dir, scene, drop, frame), res, doc)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -364,3 +365,20 @@ def test_stage_renders_accepted_simulated_drops_on_selected_frames(tmp_path, ras
     assert sorted(res) == ["room/drop0000/f000000", "room/drop0000/f000002"]
     doc, arr = load_frame(raster_stage.frame_stem(run, "room", 0, 2))
     assert doc["status"] == "ok" and arr["labels"].max() == len(ok.obj_ids)
+
+
+def test_real_depth_is_decoded_once_and_cached(tmp_path, rasterizer):
+    from pipeline.ingest import load_scan, read_depth
+    from pipeline.raster import cached_real_depth, real_depth_path
+
+    run = tmp_path / "RUN"
+    S.make_run(run, rasterizer, frames=1, drops=1)
+    scan = load_scan(run, "room")
+    h, w = scan.height, scan.width
+    d = cached_real_depth(run, scan, 0, w, h)
+    np.testing.assert_array_equal(d, read_depth(scan, 0))
+    cache = real_depth_path(run, "room", 0)
+    assert cache.is_file()
+    # A later drop reads the cache, not the image: removing the image changes nothing.
+    Path(scan.depth_paths[0]).unlink()
+    np.testing.assert_array_equal(cached_real_depth(run, scan, 0, w, h), d)
