@@ -23,6 +23,7 @@ import dataclasses
 import logging
 import os
 import re
+import shutil
 import warnings
 from pathlib import Path
 
@@ -85,7 +86,17 @@ def _builtin_scan(name: str, run_dir: Path) -> Path:
     except ImportError as e:
         raise UserError(f"scan.paths: 'builtin:{name}' needs the synthetic scan generator (pipeline.synthscan), "
                         f"which cannot be imported ({e}); name a real scan folder instead") from None
-    return Path(builtin_scan(name, run_dir / "ingest" / "_builtin" / name))
+    final = run_dir / "ingest" / "_builtin" / name
+    if final.is_dir():
+        return Path(builtin_scan(name, final))  # complete: it only ever appears by the rename below
+    # Generate beside it and rename into place, so a run killed mid-generation never leaves a partial
+    # scan folder for the resumed run to trip over; remove what such a run left.
+    for stale in final.parent.glob(f"{name}.tmp-*"):
+        shutil.rmtree(stale, ignore_errors=True)
+    tmp = final.with_name(f"{name}.tmp-{os.getpid()}")
+    builtin_scan(name, tmp)
+    os.replace(tmp, final)
+    return final
 
 
 def room_mesh_for(scan: Scan, cfg: Config) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, str]:

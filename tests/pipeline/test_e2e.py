@@ -127,7 +127,10 @@ def test_repeated_kill9_then_resume_is_byte_identical(reference, tmp_path):
     cfg, ref, _ = reference
     rng = random.Random(20261122)
     total = sum(_done_markers(ref).values())
-    targets = sorted(rng.sample(range(1, total), 4))
+    # Targets within the first 60 % of the items: past that, the remaining work (the last composites
+    # and export) can finish inside the kill delay on a fast machine, and the test would have no run
+    # left to kill.
+    targets = sorted(rng.sample(range(1, max(6, int(total * 0.6))), 4))
     out = tmp_path / "killed"
     kills = []
 
