@@ -11,23 +11,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
+from pipeline.geometry import look_at
 from pipeline.synthscan.room import Room
-
-
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0]),
-            roll: float = 0.0) -> np.ndarray:
-    """Camera-to-world pose (4, 4) at ``eye`` looking at ``target``, OpenCV axes, rolled by ``roll`` rad."""
-    z = target - eye
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, up)
-    x = x / np.linalg.norm(x)
-    y = np.cross(z, x)
-    c, s = math.cos(roll), math.sin(roll)
-    x, y = c * x + s * y, -s * x + c * y
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
-    return T
 
 
 def rotvec_to_matrix(r: np.ndarray) -> np.ndarray:

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.geometry import look_at  # noqa: F401  (re-exported: the tests build cameras with it)
+
 
 def uv_sphere(radius: float = 1.0, center=(0.0, 0.0, 0.0), *, n_lat: int = 48, n_lon: int = 96,
               inward: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -77,16 +79,3 @@ def box_room(lo, hi, *, n: int = 8) -> tuple[np.ndarray, np.ndarray]:
         fs.append(ff + off)
         off += len(vv)
     return np.concatenate(vs), np.concatenate(fs).astype(np.int32)
-
-
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """(4, 4) camera-to-world pose, OpenCV axes (z toward ``target``, y down, ``up`` up in the image)."""
-    eye, target, up = (np.asarray(x, np.float64) for x in (eye, target, up))
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
-    return T

@@ -4,23 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.geometry import look_at
 from pipeline.types import ObjectModel, Placement
 
 W_RUN, H_RUN = 160, 120
-
-
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """(4, 4) OpenCV camera-to-world pose at ``eye`` looking at ``target`` (z up in the world)."""
-    eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, y, z], axis=1)
-    T[:3, 3] = eye
-    return T
 
 
 def intrinsics(width: int, height: int, f: float) -> np.ndarray:

@@ -1,0 +1,27 @@
+"""Small pose helpers shared by the scan generator, the tracer's test shapes and the tests."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0), roll: float = 0.0) -> np.ndarray:
+    """(4, 4) float64 camera-to-world pose at ``eye`` looking at ``target``, OpenCV camera axes.
+
+    z points at ``target``, y down and x right with ``up`` up in the image, then the camera is rolled by
+    ``roll`` radians about z. Units are those of ``eye`` and ``target`` (metres in the pipeline).
+    """
+    eye, target, up = (np.asarray(a, dtype=np.float64) for a in (eye, target, up))
+    z = target - eye
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, up)
+    x = x / np.linalg.norm(x)
+    y = np.cross(z, x)
+    if roll:
+        c, s = math.cos(roll), math.sin(roll)
+        x, y = c * x + s * y, -s * x + c * y
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
+    return T
