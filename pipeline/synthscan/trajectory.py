@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
 from pipeline.geometry import look_at
 from pipeline.synthscan.room import Room
 
