@@ -49,6 +49,21 @@ class BenchResult:
             return []
         return [p[value_key] / base[0][value_key] for p in self.series[series]]
 
+    def plot_series(self, ax) -> None:
+        """Draw every series (accuracy against speed, baseline starred) on a matplotlib axis."""
+        for name, pts in self.series.items():
+            ax.plot([p["speed"] for p in pts], [p["accuracy"] for p in pts], "o-", label=name)
+            for p in pts:
+                if p["label"]:
+                    ax.annotate(p["label"], (p["speed"], p["accuracy"]), fontsize=7,
+                                textcoords="offset points", xytext=(3, 3))
+                if p["baseline"]:
+                    ax.plot([p["speed"]], [p["accuracy"]], "k*", ms=12)
+        ax.set_xlabel(self.speed_label)
+        ax.set_ylabel(self.accuracy_label + (" (lower is better)" if self.lower_is_better else ""))
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+
     def write(self, out_dir: Path = RESULTS) -> tuple[Path, Path]:
         import matplotlib
 
@@ -65,21 +80,8 @@ class BenchResult:
         jpath = out_dir / f"{self.stage}.json"
         jpath.write_text(json.dumps(doc, indent=2, sort_keys=True) + "\n")
         fig, ax = plt.subplots(figsize=(7, 4.5), dpi=110)
-        for name, pts in self.series.items():
-            xs = [p["speed"] for p in pts]
-            ys = [p["accuracy"] for p in pts]
-            ax.plot(xs, ys, "o-", label=name)
-            for p in pts:
-                if p["label"]:
-                    ax.annotate(p["label"], (p["speed"], p["accuracy"]), fontsize=7,
-                                textcoords="offset points", xytext=(3, 3))
-                if p["baseline"]:
-                    ax.plot([p["speed"]], [p["accuracy"]], "k*", ms=12)
-        ax.set_xlabel(self.speed_label)
-        ax.set_ylabel(self.accuracy_label + (" (lower is better)" if self.lower_is_better else ""))
+        self.plot_series(ax)
         ax.set_title(f"{self.stage}: accuracy against speed (star = baseline, same run)")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
         fig.tight_layout()
         ppath = out_dir / f"{self.stage}.png"
         fig.savefig(ppath)

@@ -213,19 +213,8 @@ def plot_with_2m(res: BenchResult, png: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 4.5), dpi=110, gridspec_kw={"width_ratios": [3, 2]})
-    for name, pts in res.series.items():
-        ax.plot([p["speed"] for p in pts], [p["accuracy"] for p in pts], "o-", label=name)
-        for p in pts:
-            if p["label"]:
-                ax.annotate(p["label"], (p["speed"], p["accuracy"]), fontsize=7,
-                            textcoords="offset points", xytext=(3, 3))
-            if p["baseline"]:
-                ax.plot([p["speed"]], [p["accuracy"]], "k*", ms=12)
-    ax.set_xlabel(res.speed_label)
-    ax.set_ylabel(res.accuracy_label + " (lower is better)")
+    res.plot_series(ax)
     ax.set_title("simplification: accuracy against speed (star = baseline)", fontsize=9)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
     runs = [(k, res.figures[k]) for k in ("two_million_before", "two_million") if k in res.figures]
     keys = [("total_wall_s", "wall (shared)"), ("total_cpu_s", "CPU total"),
             ("repair_cpu_s", "repair CPU"), ("estimated_wall_2_free_cores_s", "2 free cores (est.)")]
