@@ -25,8 +25,9 @@ from pipeline.tolerances import TRACE_RAY_EPS_M
 from pipeline.trace import bsdf
 from pipeline.trace.intersect import Hits, offset_origins
 from pipeline.trace.lights import sample_area_lights
-from pipeline.trace.pbr import Camera, Surface, emission_at, interact, material, primary_rays
-from pipeline.trace.sampling import frame_to_local, frame_to_world, local_frame, power_heuristic
+from pipeline.trace.pbr import (Camera, Surface, emission_at, interact, material, primary_rays,
+                                sample_continuation)
+from pipeline.trace.sampling import frame_to_local, local_frame, power_heuristic
 from pipeline.trace.scene import TraceScene
 
 log = logging.getLogger(__name__)
@@ -106,14 +107,8 @@ def _direct_and_sample(scene: TraceScene, s: Surface, wo: np.ndarray, beta: np.n
             vis = idx[~occ]
             w = power_heuristic(pdf_sa[vis], pdf_b[vis])
             L[vis] += beta[vis] * fc[vis] * Le[vis] * (w / pdf_sa[vis]).astype(np.float32)[:, None]
-    wi_l, fc, pdf = bsdf.sample_prepared(lobes, wo_l, u[3], u[4], u[5])
-    wi = frame_to_world(wi_l, frame)
-    # as pbr._scatter: a direction above the shading normal but under the facet is mirrored to the upper side
-    dn = _dot(wi, s.ng)
-    wi = np.where((dn <= 0)[:, None], wi - (2 * dn)[:, None] * s.ng, wi)
-    ok = (pdf > 0) & (wi_l[:, 2] > 0)
-    weight = np.where(ok[:, None], fc / np.where(ok, pdf, 1)[:, None], 0).astype(np.float32)
-    return L, wi.astype(np.float32), weight, pdf
+    wi, weight, pdf = sample_continuation(lobes, wo_l, frame, s.ng, u[3], u[4], u[5])
+    return L, wi, weight, pdf
 
 
 def _add_rows(acc: np.ndarray, rows: np.ndarray, vals: np.ndarray) -> None:

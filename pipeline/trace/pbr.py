@@ -227,15 +227,26 @@ def _scatter(scene: TraceScene, s: Surface, wo: np.ndarray, beta: np.ndarray, rn
             vis = idx[~occ]
             L[vis] += beta[vis] * fc[vis] * (pl.intensity[k].astype(np.float32) / (dist[vis] ** 2)[:, None])
     u = rng.random((3, n), dtype=np.float32)
-    wi_l, fc, pdf = bsdf.sample_prepared(lobes, wo_l, u[0], u[1], u[2])
+    wi, weight, pdf = sample_continuation(lobes, wo_l, frame, s.ng, u[0], u[1], u[2])
+    return L, wi, weight, pdf
+
+
+def sample_continuation(lobes, wo_l: np.ndarray, frame, ng: np.ndarray, u0: np.ndarray, u1: np.ndarray,
+                        u2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sample the next path direction from the BSDF.
+
+    Returns ``wi`` (R, 3) float32 world directions, ``weight`` (R, 3) float32 = f cos / pdf (0 where the
+    sample is invalid) and ``pdf`` (R,) solid-angle densities. ``u0..u2`` are (R,) uniforms in [0, 1).
+    """
+    wi_l, fc, pdf = bsdf.sample_prepared(lobes, wo_l, u0, u1, u2)
     wi = frame_to_world(wi_l, frame)
     # a direction above the shading normal but under the facet (interpolated normals on a coarse mesh)
     # is mirrored into the upper side rather than lost, so flat-shaded facets do not darken
-    dn = _dot(wi, s.ng)
-    wi = np.where((dn <= 0)[:, None], wi - (2 * dn)[:, None] * s.ng, wi)
+    dn = _dot(wi, ng)
+    wi = np.where((dn <= 0)[:, None], wi - (2 * dn)[:, None] * ng, wi)
     ok = (pdf > 0) & (wi_l[:, 2] > 0)
     weight = np.where(ok[:, None], fc / np.where(ok, pdf, 1)[:, None], 0).astype(np.float32)
-    return L, wi.astype(np.float32), weight, pdf
+    return wi.astype(np.float32), weight, pdf
 
 
 def trace_samples(scene: TraceScene, camera: Camera, pixels: np.ndarray, settings: RenderSettings,
