@@ -222,6 +222,8 @@ class TraceConfig:
     denoise: str = option("auto", "denoise the PBR and AO passes: oidn = Intel Open Image Denoise (pyoidn), "
                           "bilateral = joint bilateral filter, auto = oidn when installed",
                           choices=("off", "auto", "oidn", "bilateral"))
+    frames_per_item: int = option(8, "frames of one drop traced per work item: each item builds the drop's "
+                                  "scene once; fewer frames per item = finer load balance over workers", min=1)
 
 
 @dataclass(frozen=True)

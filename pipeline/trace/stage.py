@@ -75,8 +75,16 @@ def plan(ctx: StageContext) -> list[Item]:
         except ValueError:
             continue
         drops.setdefault((scene, drop_dir), []).append(frame)
-    return [Item(key=f"{scene}/{drop_dir}", data={"scene": scene, "drop": int(drop_dir[4:]), "frames": frames})
-            for (scene, drop_dir), frames in sorted(drops.items())]
+    # Chunks of a drop's frames: the scene is built once per item, and items small enough to spread over the
+    # workers (one item per drop left one core idle at the end of a run). Keys depend only on the frames.
+    n = ctx.cfg.trace.frames_per_item
+    items = []
+    for (scene, drop_dir), frames in sorted(drops.items()):
+        for i in range(0, len(frames), n):
+            chunk = frames[i:i + n]
+            items.append(Item(key=f"{scene}/{drop_dir}/f{chunk[0]:06d}-f{chunk[-1]:06d}",
+                              data={"scene": scene, "drop": int(drop_dir[4:]), "frames": chunk}))
+    return items
 
 
 def _instances(doc: dict, stem: Path, library: dict) -> list:

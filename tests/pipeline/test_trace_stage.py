@@ -202,7 +202,7 @@ def test_stage_writes_every_pass_with_the_agreed_names_and_is_deterministic(tmp_
     _make_run(run)
     ctx = _ctx(run, spp=8, shadow_samples=8)
     items = STAGE.plan(ctx)
-    assert [it.key for it in items] == ["room/drop0000"] and items[0].data["frames"] == [0]
+    assert [it.key for it in items] == ["room/drop0000/f000000-f000000"] and items[0].data["frames"] == [0]
     res = STAGE.run_item(ctx, items[0])["frames"]["f000000"]
     out = output_path(run, "room", 0, 0)
     a = load_npz(out)
@@ -243,6 +243,32 @@ def test_stage_prefers_preps_room_trace_mesh(tmp_path):
     STAGE.run_item(ctx, STAGE.plan(ctx)[0])
     a = load_npz(run / "trace/room/drop0000/f000000.npz")
     assert a["pbr"].max() == 0  # the black trace room lights nothing
+
+
+def test_frames_are_chunked_into_items_and_the_chunking_does_not_change_the_bytes(tmp_path):
+    """Items are chunks of trace.frames_per_item frames of one drop (load balance over workers); every
+    frame's seed comes from its own name, so the chunk size cannot change what is written."""
+    import shutil
+
+    from pipeline.trace.stage import STAGE, output_path
+
+    run = tmp_path / "run"
+    _make_run(run)
+    stem = run / "raster" / "room" / "drop0000" / "f000000"
+    for k in (1, 2):
+        for ext in (".npz", ".json"):
+            shutil.copy(stem.with_suffix(ext), stem.with_name(f"f{k:06d}{ext}"))
+    written = {}
+    for n in (1, 2, 3):
+        ctx = _ctx(run, spp=2, shadow_samples=2, frames_per_item=n)
+        items = STAGE.plan(ctx)
+        assert [len(it.data["frames"]) for it in items] == {1: [1, 1, 1], 2: [2, 1], 3: [3]}[n]
+        assert sum((it.data["frames"] for it in items), []) == [0, 1, 2]
+        for it in items:
+            STAGE.run_item(ctx, it)
+        written[n] = [output_path(run, "room", 0, k).read_bytes() for k in range(3)]
+    assert written[1] == written[2] == written[3]
+    assert written[1][0] != written[1][1]  # frames draw their own samples
 
 
 def test_stage_names_an_unknown_object_id(tmp_path):
