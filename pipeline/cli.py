@@ -1,6 +1,7 @@
 """``scansynth`` command line.
 
-Exit codes: 0 everything finished, 1 some item(s) failed (the rest finished and is kept), 2 usage or
+Exit codes: 0 everything finished, 1 some item(s) failed or left out unreadable inputs (the rest finished
+and is kept; each cause is on the console and in run.json), 2 usage or
 configuration error (nothing was run). User mistakes are printed as one line, never a traceback.
 """
 
@@ -160,14 +161,15 @@ def run_stages(run_dir: Path, cfg: Config, names: list[str], args: argparse.Name
     done = sum(r.done for r in reports)
     skipped = sum(r.skipped for r in reports)
     failed = sum(r.failed for r in reports)
+    problems = sum(len(v) for r in reports for v in r.problems.values())
     secs = [s for r in reports for s in r.item_seconds]
     per = sum(secs) / len(secs) if secs else 0.0
     placeholders = [r.stage for r in reports if r.placeholder]
     report = {"run_dir": str(run_dir), "seconds": round(total, 3), "done": done, "skipped": skipped,
-              "failed": failed, "stages": [r.as_dict() for r in reports]}
+              "failed": failed, "input_problems": problems, "stages": [r.as_dict() for r in reports]}
     atomic_write_json(run_dir / REPORT_NAME, report)
     msg = (f"scansynth: {done} item(s) done, {skipped} skipped (already finished), {failed} failed, "
-           f"{per:.2f} s/item, {total:.1f} s total")
+           f"{problems} input(s) left out, {per:.2f} s/item, {total:.1f} s total")
     if placeholders:
         msg += f"; PLACEHOLDER stages (not built yet, did nothing): {', '.join(placeholders)}"
     if not args.quiet:
@@ -175,7 +177,10 @@ def run_stages(run_dir: Path, cfg: Config, names: list[str], args: argparse.Name
     for r in reports:
         for key, err in r.failures.items():
             print(f"FAILED {r.stage} {key}: {err}", file=sys.stderr)
-    return EXIT_FAILED if failed else EXIT_OK
+        for key, lines in r.problems.items():
+            for line in lines:
+                print(f"LEFT OUT {r.stage} {key}: {line}", file=sys.stderr)
+    return EXIT_FAILED if failed or problems else EXIT_OK
 
 
 def _run_one(run_dir: Path, cfg: Config, stage, progress_on: bool):

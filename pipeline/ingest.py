@@ -32,7 +32,7 @@ import numpy as np
 from pipeline.config import BUILTIN_PREFIX, Config
 from pipeline.errors import InputError, UserError
 from pipeline.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, load_npz, read_json
-from pipeline.runner import Item, Stage, StageContext
+from pipeline.runner import INPUT_PROBLEMS, Item, Stage, StageContext
 from pipeline.scanformats.common import IngestWarning, read_color, read_depth, select_frames, subsample
 from pipeline.scanformats.mesh import (canonical_order, check_mesh_covers_cameras, load_mesh_file, ply_bytes,
                                        read_room_ply)
@@ -131,6 +131,32 @@ def room_mesh_for(scan: Scan, cfg: Config) -> tuple[np.ndarray, np.ndarray, np.n
     return V, F, C, f"TSDF reconstruction (voxel {ic.tsdf_voxel} m, truncation {ic.tsdf_trunc} m)"
 
 
+def readable_frames(scan: Scan) -> tuple[np.ndarray, list[str]]:
+    """Decode every frame's colour image and depth map once; the frames that cannot be read are left out.
+
+    A corrupt or wrongly sized image fails only its own frame: the scan goes on without it, and the
+    returned problem (naming the file and the cause) is reported by the run (exit 1).
+
+    Returns
+    -------
+    indices (N,) int64 of the readable frames, and one line per frame left out.
+    """
+    from pipeline.scanformats.common import read_depth_raw
+
+    keep, problems = [], []
+    for i in range(scan.num_frames):
+        try:
+            read_color(scan, i)
+            if scan.depth_paths[i]:
+                read_depth_raw(scan, i)
+        except InputError as e:
+            problems.append(f"frame {int(scan.frame_ids[i])} left out: {e}")
+            log.error("%s: frame %d left out: %s", scan.root, int(scan.frame_ids[i]), e)
+            continue
+        keep.append(i)
+    return np.asarray(keep, np.int64), problems
+
+
 def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -> Scan:
     """Read one scan folder, build its room mesh and up direction, write them to ``out_dir``.
 
@@ -158,6 +184,11 @@ def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -
     n_read = scan.num_frames
     idx = subsample(n_read, cfg.scan.max_frames)
     scan = select_frames(scan, idx)
+    ok, unreadable = readable_frames(scan)
+    if not len(ok):
+        raise InputError(f"{path}: none of the scan's {scan.num_frames} frames can be read (first: "
+                         f"{unreadable[0]}); restore the frames")
+    scan = select_frames(scan, ok)
     V, F, C, mesh_note = room_mesh_for(scan, cfg)
     up_meta, up_info = scan.up_w, {}
     up_floor, up_info = floor_up(V, F, scan.T_c2w)
@@ -171,7 +202,7 @@ def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -
     atomic_write_bytes(mesh_path, ply_bytes(V, F, C))
     meta = dict(scan.meta)
     meta.update({"up_source": source, "up": up_info, "mesh": mesh_note, "frames_read": n_read,
-                 "frames_kept": int(len(idx)), "warnings": notes, "mesh_vertices": int(len(V)),
+                 "frames_kept": int(len(ok)), "frames_unreadable": unreadable, "warnings": notes, "mesh_vertices": int(len(V)),
                  "mesh_faces": int(len(F))})
     scan = dataclasses.replace(scan, name=name, up_w=up.astype(np.float64), mesh_path=str(mesh_path.resolve()),
                                meta=meta)
@@ -279,16 +310,18 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     if item.key == OBJECTS_KEY:
         from pipeline.objects import load_library, save_library
 
-        models = load_library(tuple(item.data["paths"]), ctx.cfg.objects.scale)
+        problems: list[str] = []
+        models = load_library(tuple(item.data["paths"]), ctx.cfg.objects.scale, problems=problems)
         save_library(ctx.stage_dir / OBJECTS_KEY, models)
-        return {"objects": len(models), "ids": [m.obj_id for m in models]}
+        return {"objects": len(models), "ids": [m.obj_id for m in models], INPUT_PROBLEMS: problems}
     path = item.data["path"]
     if path.startswith(BUILTIN_PREFIX):
         path = str(_builtin_scan(path[len(BUILTIN_PREFIX):], ctx.run_dir))
     scan = ingest_scan(path, item.key, ctx.stage_dir / item.key, ctx.cfg)
     return {"scene": scan.name, "format": scan.format, "frames": scan.num_frames,
             "skipped": scan.meta.get("skipped", {}), "mesh": scan.meta["mesh"],
-            "mesh_faces": scan.meta["mesh_faces"], "up_source": scan.meta["up_source"]}
+            "mesh_faces": scan.meta["mesh_faces"], "up_source": scan.meta["up_source"],
+            INPUT_PROBLEMS: scan.meta["frames_unreadable"]}
 
 
 STAGE = Stage("ingest", plan, run_item)

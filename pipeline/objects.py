@@ -210,7 +210,19 @@ def _bop_dir(p: Path) -> Path | None:
     return None
 
 
-def _load_bop(d: Path, scale_cfg: float) -> list[ObjectModel]:
+def _load_one(problems: list[str] | None, path: Path, **kw) -> ObjectModel | None:
+    """:func:`load_object_file`; with a ``problems`` list, an unreadable file is recorded there and skipped."""
+    try:
+        return load_object_file(path, **kw)
+    except InputError as e:
+        if problems is None:
+            raise
+        log.error("object skipped: %s", e)
+        problems.append(str(e))
+        return None
+
+
+def _load_bop(d: Path, scale_cfg: float, problems: list[str] | None = None) -> list[ObjectModel]:
     import json
 
     scale = scale_cfg if scale_cfg > 0 else 0.001
@@ -229,7 +241,9 @@ def _load_bop(d: Path, scale_cfg: float) -> list[ObjectModel]:
     out = []
     for f in files:
         oid = int(BOP_RX.fullmatch(f.name).group(1))
-        m = load_object_file(f, obj_id=oid, scale=scale, unit_note=note)
+        m = _load_one(problems, f, obj_id=oid, scale=scale, unit_note=note)
+        if m is None:
+            continue
         entry = ref.get(str(oid), {})
         if entry:
             info = dict(m.info)
@@ -262,13 +276,18 @@ def model_files(p: Path) -> list[Path]:
     return files
 
 
-def load_library(paths: tuple[str, ...] | list[str], scale: float = 0.0) -> list[ObjectModel]:
+def load_library(paths: tuple[str, ...] | list[str], scale: float = 0.0,
+                 problems: list[str] | None = None) -> list[ObjectModel]:
     """Every object of the sources ``paths`` (see the module docstring), ids unique, sorted by id.
 
     Parameters
     ----------
     paths : files, folders or ``"builtin:shapes"``.
     scale : metres per file unit; 0 = from the format.
+    problems : when given, a model file that cannot be read is skipped and its error appended here
+        (the ingest stage reports them and exits 1) instead of failing the whole library. Its id stays
+        taken, so the other objects keep their ids once it is fixed. A path that does not exist, or a
+        library where nothing loads, is still an error.
     """
     bop: list[ObjectModel] = []
     files: list[tuple[Path, str]] = []
@@ -284,7 +303,7 @@ def load_library(paths: tuple[str, ...] | list[str], scale: float = 0.0) -> list
             raise InputError(f"{p}: object path does not exist; fix objects.paths")
         d = _bop_dir(p) if p.is_dir() else None
         if d is not None:
-            got = _load_bop(d, scale)
+            got = _load_bop(d, scale, problems)
             taken = {m.obj_id: m for m in bop}
             for m in got:
                 if m.obj_id in taken:
@@ -307,10 +326,13 @@ def load_library(paths: tuple[str, ...] | list[str], scale: float = 0.0) -> list
             sc, note = 1.0, "metres (glTF)"
         else:
             sc, note = 1.0, "metres (default for .ply/.obj; set objects.scale otherwise)"
-        out.append(load_object_file(f, obj_id=next_id, scale=sc, unit_note=note))
+        m = _load_one(problems, f, obj_id=next_id, scale=sc, unit_note=note)
+        if m is not None:
+            out.append(m)
         next_id += 1
     if not out:
-        raise InputError("objects.paths names no object; give at least one model file or folder")
+        why = f" that can be read ({'; '.join(problems)})" if problems else ""
+        raise InputError(f"objects.paths names no object{why}; give at least one model file or folder")
     return sorted(out, key=lambda m: m.obj_id)
 
 

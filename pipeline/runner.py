@@ -11,6 +11,12 @@ earlier stages' outputs: redoing an item whose marker was not yet written gives 
 A failing item is recorded (``<key>.failed.json``: the cause, one line for a
 :class:`~pipeline.errors.UserError`, the traceback otherwise), the stage goes on with the other items,
 and the run ends with exit code 1. Failed items are retried when the run is started again.
+
+An item that finishes but had to leave out part of its input (a corrupt frame of a scan, an unreadable
+model in an object library) lists each omission, naming the file and the cause, under
+``result[INPUT_PROBLEMS]``. Its outputs are kept (the done marker is written), the problems are reported
+in run.json and on the console by every invocation that covers the stage, and the run exits 1: the
+dataset is complete for what could be read, and the user is told what could not.
 """
 
 from __future__ import annotations
@@ -36,6 +42,7 @@ log = logging.getLogger(__name__)
 
 ITEMS_DIR = "_items"
 PLAN_FAILED = "_plan.failed.json"  # written when a stage cannot list its items
+INPUT_PROBLEMS = "input_problems"  # key of a run_item result: inputs the item left out, one line each
 
 
 @dataclass(frozen=True)
@@ -88,6 +95,7 @@ class StageReport:
     seconds: float = 0.0
     item_seconds: list[float] = field(default_factory=list)
     failures: dict[str, str] = field(default_factory=dict)
+    problems: dict[str, list[str]] = field(default_factory=dict)  # finished items that left out inputs
     placeholder: str = ""
 
     def as_dict(self) -> dict:
@@ -95,7 +103,7 @@ class StageReport:
         return {"stage": self.stage, "total": self.total, "done": self.done, "skipped": self.skipped,
                 "failed": self.failed, "seconds": round(self.seconds, 3),
                 "seconds_per_item": round(per, 4), "failures": self.failures,
-                "placeholder": self.placeholder}
+                "input_problems": self.problems, "placeholder": self.placeholder}
 
 
 def _marker(run_dir: Path, stage: str, key: str, kind: str) -> Path:
@@ -269,7 +277,12 @@ def run_stage(run_dir: Path, cfg: Config, stage: Stage,
             _terminate_workers(pool)
             raise
         pool.shutdown(wait=True)
+    results = item_results(run_dir, stage.name) if (stage.finish is not None or report.total) else {}
+    planned = set(keys)
+    for key, res in results.items():
+        if key in planned and isinstance(res, dict) and res.get(INPUT_PROBLEMS):
+            report.problems[key] = [str(p) for p in res[INPUT_PROBLEMS]]
     if stage.finish is not None:  # also after failures: finish what can be finished
-        stage.finish(ctx, item_results(run_dir, stage.name))
+        stage.finish(ctx, results)
     report.seconds = time.perf_counter() - t0
     return report

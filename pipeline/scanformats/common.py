@@ -136,25 +136,44 @@ DEPTH_MODES = ("I;16", "I;16B", "I;16L", "I")  # 16-bit single-channel
 
 def check_image_sizes(paths: list[str], expect: tuple[int, int] | None, what: str,
                       depth: bool = False) -> tuple[int, int]:
-    """Check that every image has the same size (``expect`` when given) and, for depth, 16 bits.
+    """The common size of the images ``paths`` (``expect`` when given), from their headers.
+
+    One bad file does not fail the scan: a file that cannot be read, or has another size or (for depth)
+    not 16 bits, is named in an :class:`IngestWarning` and stays in the scan's lists; ingest then leaves
+    that frame out when it decodes it (``pipeline.ingest.readable_frames``), and the run reports it and
+    exits 1. Without ``expect`` the size is the most common one. InputError only when no file is usable.
 
     Returns ``(width, height)``.
     """
-    size = expect
-    for p in paths:
-        if not p:
+    import collections
+
+    sizes: dict[str, tuple[int, int]] = {}
+    first_error = ""
+    listed = [p for p in paths if p]
+    for p in listed:
+        try:
+            w, h, mode = image_header(p, what)
+        except InputError as e:
+            first_error = first_error or str(e)
+            warn(f"{e}; the frame is left out")
             continue
-        w, h, mode = image_header(p, what)
         if depth and not p.endswith(".npy") and mode not in DEPTH_MODES:
-            raise InputError(f"{p}: depth image has pixel type {mode!r}, expected 16-bit single-channel "
-                             f"(uint16 depth units, 0 = invalid); re-export the depth maps as 16-bit PNG")
-        if size is None:
-            size = (w, h)
-        elif (w, h) != size:
-            raise InputError(f"{p}: {what} image is {w}x{h}, expected {size[0]}x{size[1]} like the "
-                             f"scan's other {what} images / its intrinsics; re-export it at that size")
-    if size is None:
+            msg = (f"{p}: depth image has pixel type {mode!r}, expected 16-bit single-channel (uint16 depth "
+                   f"units, 0 = invalid); re-export the depth maps as 16-bit PNG")
+            first_error = first_error or msg
+            warn(f"{msg}; the frame is left out")
+            continue
+        sizes[p] = (w, h)
+    if not listed:
         raise InputError(f"no {what} images found")
+    if not sizes:
+        raise InputError(f"none of the scan's {len(listed)} {what} images can be used (first: {first_error}); "
+                         f"restore them")
+    size = expect or collections.Counter(sizes.values()).most_common(1)[0][0]
+    for p, (w, h) in sizes.items():
+        if (w, h) != size:
+            warn(f"{p}: {what} image is {w}x{h}, expected {size[0]}x{size[1]} like the scan's other {what} "
+                 f"images / its intrinsics; re-export it at that size; the frame is left out")
     return size
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import InputError
-from pipeline.scanformats.common import (check_extrinsic, check_image_sizes, check_intrinsics, check_pose, image_header,
+from pipeline.scanformats.common import (check_extrinsic, check_image_sizes, check_intrinsics, check_pose,
                                          index_files, match_frames, read_matrix)
 from pipeline.types import Scan
 
@@ -59,8 +59,7 @@ def read(root: Path) -> Scan:
     cpaths = [str(colors[i].resolve()) for i in kept]
     dpaths = [str(depths[i].resolve()) for i in kept]
     w, h = check_image_sizes(cpaths, None, "colour")
-    wd, hd, _ = image_header(dpaths[0], "depth")
-    check_image_sizes(dpaths, (wd, hd), "depth", depth=True)
+    wd, hd = check_image_sizes(dpaths, None, "depth", depth=True)
     Kc = check_intrinsics(Kc4[:3, :3], w, h, intr / "intrinsic_color.txt")
     Kd = check_intrinsics(Kd4[:3, :3], wd, hd, intr / "intrinsic_depth.txt")
     Ec = check_extrinsic(Ec, intr / "extrinsic_color.txt", "colour extrinsics")

@@ -5,9 +5,10 @@ built-in shapes (or small generated files), so nothing outside the repository is
 
 - Repeated SIGKILL at random moments (seeded), resumed each time: the final run folder is complete and
   byte-identical to an uninterrupted run (every file but run.json, the report of the last invocation).
-- Bad inputs: a scan with corrupt frames beside a good scan, a truncated PLY beside good objects, a
-  config pointing nowhere. The run finishes what it can, names each failure with its cause in run.json
-  and on stderr, exits 1 (2 for the config), and a second invocation keeps every finished item.
+- Bad inputs: a scan with corrupt frames (left out) and a scan with no readable frame (fails) beside a
+  good scan, a truncated PLY beside good objects (left out), a config pointing nowhere. The run finishes
+  what it can, names each failure with its cause in run.json and on stderr, exits 1 (2 for the config),
+  and a second invocation keeps every finished item.
 - Memory: raster + trace + composite over many frames in one process; resident memory (from
   /proc/self/statm) must not grow per frame once warm.
 """
@@ -172,73 +173,99 @@ def test_repeated_kill9_then_resume_is_byte_identical(reference, tmp_path):
     assert not list(out.rglob("*.tmp-*")), "partial files left behind"
 
 
-def _corrupt_scan(root: Path) -> Path:
-    """A copy of the built-in tiny scan with one truncated colour PNG and one depth PNG of garbage."""
+def _corrupt_scans(root: Path) -> tuple[Path, Path]:
+    """Two copies of the built-in tiny scan: one with a truncated colour PNG and a depth PNG of garbage
+    (two of its eight frames), one whose every colour image is garbage."""
     from pipeline.synthscan import builtin_scan
 
     scan = builtin_scan("tiny", root / "tiny-src")
-    bad = root / "corrupt-scan"
-    shutil.copytree(scan, bad, ignore=shutil.ignore_patterns("ground_truth"))
+    bad, dead = root / "corrupt-scan", root / "dead-scan"
+    for d in (bad, dead):
+        shutil.copytree(scan, d, ignore=shutil.ignore_patterns("ground_truth"))
     png = bad / "frames" / "frame-000002.color.png"
     png.write_bytes(png.read_bytes()[:200])
     (bad / "frames" / "frame-000005.depth.png").write_bytes(b"not a png")
-    return bad
+    for p in (dead / "frames").glob("*.color.png"):
+        p.write_bytes(b"garbage")
+    return bad, dead
+
+
+def _problems(report: dict) -> dict[tuple[str, str], list[str]]:
+    return {(s["stage"], k): v for s in report["stages"] for k, v in s["input_problems"].items()}
 
 
 def test_bad_inputs_finish_what_they_can(tmp_path):
-    # a corrupt scan beside a good one: the good scene becomes a dataset, the bad one is reported
-    bad_scan = _corrupt_scan(tmp_path)
-    cfg = _config(tmp_path / "bad.toml", scans=("builtin:tiny", str(bad_scan)))
+    """Corrupt frames are left out of their scan (which still becomes data); a scan with no readable
+    frame fails alone; each cause is in run.json and on stderr; exit 1; a rerun loses nothing."""
+    bad_scan, dead_scan = _corrupt_scans(tmp_path)
+    cfg = _config(tmp_path / "bad.toml", scans=("builtin:tiny", str(bad_scan), str(dead_scan)))
     out = tmp_path / "run"
     r = _run(cfg, out)
     assert r.returncode == 1, r.stderr
-    report = json.loads((out / "run.json").read_text())
-    assert report["failed"] >= 1
-    fails = {(s["stage"], k): v for s in report["stages"] for k, v in s["failures"].items()}
-    ingest_fail = fails[("ingest", "corrupt-scan")]
-    assert "frame-000005.depth.png" in ingest_fail or "frame-000002.color.png" in ingest_fail
-    assert "cannot be read" in ingest_fail
-    assert f"FAILED ingest corrupt-scan: {ingest_fail}" in r.stderr
     assert "Traceback" not in r.stderr
-    stages = {s["stage"]: s for s in report["stages"]}
-    assert stages["composite"]["done"] >= 1 and _images(out), "the good scene made no image"
-    # every failure is the bad scene's (no stage failed for the good one)
-    assert all("corrupt-scan" in key or key == "(plan)" for _, key in fails), fails
+    report = json.loads((out / "run.json").read_text())
 
-    # resume: the failed item is retried (and fails again with the same cause); nothing finished is
-    # redone or changed
+    # the corrupt frames: left out, each named with its file and cause, console and run.json
+    left_out = _problems(report)[("ingest", "corrupt-scan")]
+    assert len(left_out) == 2 and report["input_problems"] == 2, left_out
+    for name, line in zip(("frame-000002.color.png", "frame-000005.depth.png"), left_out):
+        assert name in line and "cannot be read" in line, line
+        assert f"LEFT OUT ingest corrupt-scan: {line}" in r.stderr
+    ingested = json.loads((out / "ingest" / "_items" / "corrupt-scan.done.json").read_text())
+    assert ingested["frames"] == 6
+
+    # the scan with no readable frame fails alone, and says why
+    fails = {(s["stage"], k): v for s in report["stages"] for k, v in s["failures"].items()}
+    dead = fails[("ingest", "dead-scan")]
+    assert "none of the scan's 8 colour images can be used" in dead and "color.png" in dead, dead
+    assert f"FAILED ingest dead-scan: {dead}" in r.stderr
+    assert all("dead-scan" in key or key == "(plan)" for _, key in fails), fails
+
+    # both readable scenes became images
+    for scene in ("tiny", "corrupt-scan"):
+        assert any(scene in str(p) for p in _images(out)) or any(
+            (out / "composite" / scene).rglob("*.png")), f"{scene} made no image"
+    stages = {s["stage"]: s for s in report["stages"]}
+    assert stages["composite"]["done"] >= 2
+
+    # resume: the failed item is retried (and fails again with the same cause), the left-out frames are
+    # reported again (exit 1 again); nothing finished is redone or changed
     before = _snapshot(out)
     r2 = _run(cfg, out)
     assert r2.returncode == 1
     report2 = json.loads((out / "run.json").read_text())
     assert report2["done"] == 0 and report2["skipped"] == report["done"] + report["skipped"]
+    assert _problems(report2) == _problems(report)
     after = _snapshot(out)
     changed = [k for k in before if k in after and before[k] != after[k]]
     assert not changed and set(before) <= set(after), changed[:10]
 
 
-def test_broken_object_file_is_reported(tmp_path):
+def test_broken_object_file_is_left_out_and_reported(tmp_path):
     import trimesh
 
     objs = tmp_path / "objects"
     objs.mkdir()
     trimesh.creation.box((0.10, 0.06, 0.04)).export(objs / "a_box.ply")
-    trimesh.creation.cylinder(0.035, 0.12).export(objs / "b_cylinder.ply")
     data = (objs / "a_box.ply").read_bytes()
-    (objs / "c_truncated.ply").write_bytes(data[: len(data) // 2])
+    (objs / "b_truncated.ply").write_bytes(data[: len(data) // 2])
+    trimesh.creation.cylinder(0.035, 0.12).export(objs / "c_cylinder.ply")
     cfg = _config(tmp_path / "obj.toml", objects=(str(objs),))
     out = tmp_path / "run"
     r = _run(cfg, out, "--to", "prep")
     assert r.returncode == 1, r.stderr
-    report = json.loads((out / "run.json").read_text())
-    fails = {(s["stage"], k): v for s in report["stages"] for k, v in s["failures"].items()}
-    cause = fails[("ingest", "objects")]
-    assert "c_truncated.ply" in cause and "cannot be read" in cause
-    assert f"FAILED ingest objects: {cause}" in r.stderr
     assert "Traceback" not in r.stderr
-    # what does not need the library finished: the scene's ingest, its frame selection, its room proxy
+    report = json.loads((out / "run.json").read_text())
+    assert report["failed"] == 0
+    (cause,) = _problems(report)[("ingest", "objects")]
+    assert "b_truncated.ply" in cause and "cannot be read" in cause
+    assert f"LEFT OUT ingest objects: {cause}" in r.stderr
+    # the readable objects are the library, with the ids they would have had: the broken file keeps
+    # its slot, so fixing it later renumbers nothing
+    ingested = json.loads((out / "ingest" / "_items" / "objects.done.json").read_text())
+    assert ingested["ids"] == [1, 3]
     markers = _done_markers(out)
-    assert markers["ingest"] == 1 and markers["select"] == 1 and markers["prep"] >= 1, markers
+    assert markers["ingest"] == 2 and markers["select"] == 1 and markers["prep"] >= 1, markers
 
 
 def test_config_pointing_nowhere_exits_2(tmp_path):

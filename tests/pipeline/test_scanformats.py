@@ -311,10 +311,25 @@ def test_frame_without_colour_is_skipped_with_warning(tmp_path):
     assert list(s.frame_ids) == [0, 1, 3] and s.meta["skipped"]["no_color"] == 1
 
 
+# A bad image fails its own frame, not the scan: the reader names it in a warning and keeps it listed;
+# decoding it raises (ingest leaves such frames out and reports them: tests/pipeline/test_e2e.py).
+
 def test_unreadable_image(tmp_path):
     write_7scenes(tmp_path, n=3)
     (tmp_path / "frame-000001.color.png").write_bytes(b"not an image at all")
+    with pytest.warns(IngestWarning, match=r"frame-000001\.color\.png: colour image cannot be read.*left out"):
+        s = read_scan(tmp_path)
+    assert (s.width, s.height) == (64, 48)
     with pytest.raises(InputError, match=r"frame-000001\.color\.png: colour image cannot be read"):
+        read_color(s, 1)
+    read_color(s, 0)
+
+
+def test_scan_whose_every_image_is_unreadable_fails(tmp_path):
+    write_7scenes(tmp_path, n=2)
+    for k in range(2):
+        (tmp_path / f"frame-00000{k}.color.png").write_bytes(b"junk")
+    with pytest.warns(IngestWarning), pytest.raises(InputError, match=r"none of the scan's 2 colour images"):
         read_scan(tmp_path)
 
 
@@ -334,15 +349,19 @@ def test_truncated_image_fails_when_read(tmp_path):
 def test_depth_wrong_size(tmp_path):
     write_7scenes(tmp_path, n=3)
     write_png16(tmp_path / "frame-000001.depth.png", np.ones((10, 12)))
-    with pytest.raises(InputError, match=r"frame-000001\.depth\.png: depth image is 12x10, expected 64x48"):
-        read_scan(tmp_path)
+    with pytest.warns(IngestWarning, match=r"frame-000001\.depth\.png: depth image is 12x10, expected 64x48"):
+        s = read_scan(tmp_path)
+    with pytest.raises(InputError, match=r"frame-000001\.depth\.png: depth map is 12x10, expected 64x48"):
+        read_depth(s, 1)
 
 
 def test_depth_wrong_dtype(tmp_path):
     write_7scenes(tmp_path, n=3)
     cv2.imwrite(str(tmp_path / "frame-000002.depth.png"), np.full((48, 64), 7, np.uint8))
-    with pytest.raises(InputError, match=r"frame-000002\.depth\.png: depth image has pixel type 'L'.*16-bit"):
-        read_scan(tmp_path)
+    with pytest.warns(IngestWarning, match=r"frame-000002\.depth\.png: depth image has pixel type 'L'.*16-bit"):
+        s = read_scan(tmp_path)
+    with pytest.raises(InputError, match=r"frame-000002\.depth\.png: depth image is uint8.*16-bit"):
+        read_depth(s, 2)
 
 
 def test_pose_with_nan_is_skipped_with_warning(tmp_path):
