@@ -165,8 +165,13 @@ def run_stages(run_dir: Path, cfg: Config, names: list[str], args: argparse.Name
     secs = [s for r in reports for s in r.item_seconds]
     per = sum(secs) / len(secs) if secs else 0.0
     placeholders = [r.stage for r in reports if r.placeholder]
+    from pipeline import report as run_report
+
+    stage_docs = [r.as_dict() for r in reports]
     report = {"run_dir": str(run_dir), "seconds": round(total, 3), "done": done, "skipped": skipped,
-              "failed": failed, "input_problems": problems, "stages": [r.as_dict() for r in reports]}
+              "failed": failed, "input_problems": problems,
+              "throughput": run_report.throughput(run_dir, stage_docs),
+              "rejected": run_report.rejected(run_dir), "stages": stage_docs}
     atomic_write_json(run_dir / REPORT_NAME, report)
     msg = (f"scansynth: {done} item(s) done, {skipped} skipped (already finished), {failed} failed, "
            f"{problems} input(s) left out, {per:.2f} s/item, {total:.1f} s total")

@@ -119,6 +119,17 @@ def test_reference_run_makes_images(reference):
     assert stages["composite"]["done"] >= 3, stages["raster"]
     assert len(_images(out)) >= 3
     assert sorted((out / "export").rglob("scene_gt_coco.json")), "export wrote no COCO file"
+    # run.json: throughput and what was thrown away, with reasons, agreeing with the stages' own records
+    tp = report["throughput"]
+    assert tp["images"] == len(_images(out)) and tp["images_per_hour"] > 0
+    rej = report["rejected"]
+    raster = json.loads((out / "raster" / "summary.json").read_text())
+    assert rej["frames"] == raster["rejected_frames"]
+    assert all(reason for reason in rej["frames"].values())
+    sim = json.loads((out / "simulate" / "summary.json").read_text())
+    assert len(rej["drops"]) == sim["drops"] - sim["verdicts"].get("accepted", 0)
+    selection = json.loads(next((out / "select").glob("*/selection.json")).read_text())
+    assert sum(next(iter(rej["select"].values())).values()) == sum(not f["kept"] for f in selection["frames"])
 
 
 def test_repeated_kill9_then_resume_is_byte_identical(reference, tmp_path):
@@ -236,6 +247,9 @@ def test_bad_inputs_finish_what_they_can(tmp_path):
     report2 = json.loads((out / "run.json").read_text())
     assert report2["done"] == 0 and report2["skipped"] == report["done"] + report["skipped"]
     assert _problems(report2) == _problems(report)
+    # a resumed run's seconds cover only what it redid: no rate is claimed from them
+    assert report2["throughput"]["images"] == report["throughput"]["images"]
+    assert "images_per_hour" not in report2["throughput"]
     after = _snapshot(out)
     changed = [k for k in before if k in after and before[k] != after[k]]
     assert not changed and set(before) <= set(after), changed[:10]
