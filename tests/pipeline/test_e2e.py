@@ -142,7 +142,9 @@ def test_repeated_kill9_then_resume_is_byte_identical(reference, tmp_path):
     # Targets within the first 60 % of the items: past that, the remaining work (the last composites
     # and export) can finish inside the kill delay on a fast machine, and the test would have no run
     # left to kill.
+    # One more target late (composite / export), with no delay: it counts when the run is still alive.
     targets = sorted(rng.sample(range(1, max(6, int(total * 0.6))), 4))
+    late = rng.randrange(int(total * 0.6), max(int(total * 0.6) + 1, int(total * 0.95)))
     out = tmp_path / "killed"
     kills = []
 
@@ -167,6 +169,7 @@ def test_repeated_kill9_then_resume_is_byte_identical(reference, tmp_path):
     for t in targets:
         if not kill_at(t, rng.uniform(0.0, 0.5)):
             break
+    kill_at(late, 0.0)
     assert len(kills) >= 4, f"the run finished before it could be killed several times: {kills}"
     r = _run(cfg, out)
     assert r.returncode == 0, r.stderr
