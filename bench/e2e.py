@@ -1,6 +1,7 @@
 """End-to-end throughput: images per hour of `scansynth run` on the real 7-Scenes config, per preset.
 
     .venv/bin/python -m bench.e2e [--config configs/7scenes.toml] [--work DIR] [--presets fast,default,high]
+                                  [--subset high=1]
 
 Each stage runs as its own ``scansynth run CONFIG --out DIR --from S --to S`` process, so that besides
 its wall seconds (and run.json's per-item seconds) the benchmark gets its CPU seconds (user + system of
@@ -12,6 +13,10 @@ trace (ingest, select, prep, simulate, raster) do the same work and write the sa
 preset: they run once, in the ``default`` run folder, and the other presets' folders start from a copy
 of their outputs. Every preset's end-to-end figure counts those shared stages' seconds plus its own
 trace, composite and export seconds.
+
+``--subset PRESET=N`` runs that preset's own stages on the first N drops only (the ``high`` preset
+costs many times the others' trace time); its shared stages are then charged by the share of the raster
+frames it uses, so its images per hour stay comparable. The JSON says which presets were subset.
 
 Baseline measured in the same run: the ``fast`` preset; ratios beside absolute figures. Quality axis:
 the trace stage's mean samples per object pixel (its error against a reference for given settings is
@@ -56,6 +61,11 @@ def run_stage(cfg: Path, out: Path, stage: str, workers: int) -> dict:
     return {"stage": stage, "wall_s": round(wall, 2), "cpu_s": round(cpu, 2), "rc": r.returncode,
             "run_json_s": rep["seconds"], "items": rep["done"], "failed": rep["failed"],
             "s_per_item": rep["seconds_per_item"], "failures": dict(list(rep["failures"].items())[:3])}
+
+
+def raster_frames(out: Path) -> int:
+    """Rendered (not rejected) raster frames of a run folder."""
+    return sum(1 for _ in (out / "raster").glob("*/drop*/f*.npz"))
 
 
 def images(out: Path) -> int:
@@ -105,7 +115,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--presets", default="fast,default,high")
     ap.add_argument("--workers", type=int, default=0, help="run.workers (0 = one per core)")
     ap.add_argument("--keep", action="store_true", help="reuse finished stages in --work (resume)")
+    ap.add_argument("--subset", default="", help="PRESET=N[,PRESET=N]: run that preset's own stages on the "
+                                                 "first N drops only")
     args = ap.parse_args(argv)
+    subset = {k: int(v) for k, v in (kv.split("=") for kv in args.subset.split(",") if kv)}
     import signal
 
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))    # cut short: still remove the temp configs
@@ -135,8 +148,14 @@ def main(argv: list[str] | None = None) -> int:
                     init_run_dir(out, load_config(cfgs[p]))
                     for s in SHARED_STAGES:
                         shutil.copytree(base / s, out / s, dirs_exist_ok=True)
+                    if p in subset:
+                        for d in (out / "raster").glob("*/drop*"):
+                            if d.is_dir() and int(d.name[4:]) >= subset[p]:
+                                shutil.rmtree(d)
             own = [run_stage(cfgs[p], out, s, args.workers) for s in PRESET_STAGES]
-            stages = shared + own
+            share = raster_frames(out) / max(1, raster_frames(base))
+            stages = [dict(st, wall_s=round(st["wall_s"] * share, 2), cpu_s=round(st["cpu_s"] * share, 2),
+                           charged_share=round(share, 4)) if share < 1 else st for st in shared] + own
             wall = sum(s["wall_s"] for s in stages)
             cpu = sum(s["cpu_s"] for s in stages)
             n = images(out)
@@ -145,7 +164,8 @@ def main(argv: list[str] | None = None) -> int:
                 "images_per_hour_wall": round(3600 * n / wall, 1) if wall else 0.0,
                 # the same work with the machine's cores to itself: CPU seconds spread over the cores
                 "images_per_hour_cpu": round(3600 * n * cores / cpu, 1) if cpu else 0.0,
-                "mean_spp": round(mean_spp(out), 2), "stages": stages}
+                "mean_spp": round(mean_spp(out), 2), "stages": stages,
+                "subset_drops": subset.get(p), "raster_frames_share": round(share, 4)}
             print(f"{p}: {n} images, wall {wall:.0f} s, cpu {cpu:.0f} s -> "
                   f"{results[p]['images_per_hour_wall']:.0f} img/h wall, "
                   f"{results[p]['images_per_hour_cpu']:.0f} img/h by CPU time", file=sys.stderr)
@@ -187,6 +207,8 @@ def write_results(results: dict[str, dict], presets: list[str], args, cores: int
         "images_per_hour_cpu = images x cores x 3600 / CPU seconds: the rate with the machine to ourselves; "
         "images_per_hour_wall is what this (shared, loaded) machine gave during the run.",
         "Per-stage split: results.presets.<p>.stages (wall_s, cpu_s, run.json seconds and items).",
+        "A preset with subset_drops ran trace/composite/export on its first drops only; its shared stages' "
+        "seconds are charged by raster_frames_share (its share of the rendered frames).",
     ]
     missing = [p for p in presets if p not in results]
     if missing:
