@@ -222,6 +222,13 @@ class TraceConfig:
     denoise: str = option("auto", "denoise the PBR and AO passes: oidn = Intel Open Image Denoise (pyoidn), "
                           "bilateral = joint bilateral filter, auto = oidn when installed",
                           choices=("off", "auto", "oidn", "bilateral"))
+    photo_frames: int = option(24, "photo-based lighting: frames (spread over the scan) whose clipped pixels mark "
+                               "lights on the room mesh and whose rays leaving the mesh give an environment map "
+                               "for rays escaping through holes; 0 = room mesh colours and env_radiance only",
+                               min=0)
+    room_albedo: float = option(0.5, "photo-based lighting: typical room albedo (grey-world prior) for the energy "
+                                "balance that sets the radiance of directions no photo saw; 0 = env_radiance "
+                                "there", min=0.0, max=1.0)
     frames_per_item: int = option(8, "frames of one drop traced per work item: each item builds the drop's "
                                   "scene once; fewer frames per item = finer load balance over workers", min=1)
 

@@ -300,7 +300,7 @@ def trace_samples(scene: TraceScene, camera: Camera, pixels: np.ndarray, setting
         counter.rays += k.size
         miss = ~h.hit
         if miss.any():
-            _add_rows(L, idx[miss], beta[miss] * scene.env_radiance)
+            _add_rows(L, idx[miss], beta[miss] * scene.escape_radiance(wi[miss]))
         hk = np.flatnonzero(h.hit)
         if hk.size == 0:
             break

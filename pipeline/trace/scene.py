@@ -54,6 +54,16 @@ class TraceScene:
     tri_normal: np.ndarray    # (T, 3) float32 unit geometric normals (winding order)
     tri_emits: np.ndarray     # (T,) bool, some vertex of the triangle has non-zero emission
     tri_scatters: np.ndarray  # (T,) bool, paths continue from this triangle (objects; a reflecting room)
+    env_map: np.ndarray | None = None  # (h, w, 3) float32 equirectangular radiance of escaping rays, or None
+    up: np.ndarray | None = None       # (3,) world up vector, the env_map's axis
+
+    def escape_radiance(self, dirs: np.ndarray) -> np.ndarray:
+        """Radiance (N, 3) float32 seen by rays ``dirs (N, 3)`` that leave the scene."""
+        if self.env_map is None:
+            return np.broadcast_to(self.env_radiance, (len(dirs), 3))
+        from pipeline.trace.photolights import env_lookup
+
+        return env_lookup(self.env_map, np.array([0.0, 0.0, 1.0]) if self.up is None else self.up, dirs)
 
     @property
     def num_instances(self) -> int:
@@ -120,7 +130,8 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
                 objects: list[ObjectInstance], *, lighting: str = "scan", radiance_scale: float = 1.0,
                 light_threshold: int = 250, light_gain: float = 4.0, env_radiance: np.ndarray | None = None,
                 published_power: float = 1.0, up: np.ndarray | None = None,
-                room_linear_radiance: np.ndarray | None = None) -> TraceScene:
+                room_linear_radiance: np.ndarray | None = None, light_vertices: np.ndarray | None = None,
+                env_map: np.ndarray | None = None) -> TraceScene:
     """Assemble a :class:`TraceScene` and its Embree intersector.
 
     Parameters
@@ -136,6 +147,12 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
     up : (3,) unit up vector of the world (published lights); None = +z
     room_linear_radiance : (V, 3) float linear radiance given directly (tests, reference scenes);
         replaces the colour conversion and disables clipped-light detection
+    light_vertices : (V,) bool room vertices found clipped in the photos
+        (:func:`pipeline.trace.photolights.photo_lights`): lights like clipped vertex colours (linear
+        white x ``radiance_scale`` x ``light_gain``), scan lighting only, ignored when ``light_gain <= 0``
+    env_map : (h, w, 3) float32 equirectangular radiance of escaping rays about ``up``
+        (:func:`pipeline.trace.photolights.env_lookup`); replaces ``env_radiance`` for the object tracer
+        and the shadow pass (scan lighting only)
     """
     rv = np.asarray(room_vertices, np.float64).reshape(-1, 3)
     rf = np.asarray(room_faces, np.int64).reshape(-1, 3)
@@ -179,14 +196,19 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
     V = np.concatenate(verts).astype(np.float32)
     F = np.concatenate(faces).astype(np.int32)
     E = np.concatenate(emis).astype(np.float32)
-    if lighting == "scan" and bright.any():
-        light_v = np.unique(rf[bright])
-        E[light_v] *= np.float32(light_gain)
-    light_mask = np.zeros(len(F), bool)
-    if lighting == "scan" and bright.any():
-        # every triangle touching a boosted vertex carries boosted emission: sample them all explicitly
-        boosted = np.zeros(nrv, bool)
+    boosted = np.zeros(nrv, bool)
+    if lighting == "scan":
         boosted[np.unique(rf[bright])] = True
+        if light_vertices is not None and light_gain > 0 and room_linear_radiance is None:
+            lv = np.asarray(light_vertices, bool).reshape(-1)
+            if lv.shape[0] != nrv:
+                raise ValueError(f"light_vertices has {lv.shape[0]} entries, the room has {nrv} vertices")
+            E[:nrv][lv & ~boosted] = np.float32(radiance_scale)   # seen clipped: sensor white
+            boosted |= lv
+        E[:nrv][boosted] *= np.float32(light_gain)
+    light_mask = np.zeros(len(F), bool)
+    if boosted.any():
+        # every triangle touching a boosted vertex carries boosted emission: sample them all explicitly
         light_mask[:nrt] = boosted[rf].any(axis=1)
     area = build_area_lights(V, F, E, light_mask)
     if lighting == "published" and nrv:
@@ -214,4 +236,6 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
                       textures=Textures(tuple(tex_inst), tuple(tex_img)), area_lights=area, point_lights=pts,
                       env_radiance=env, num_room_tris=nrt, scale=float(np.max(ext)),
                       intersector=EmbreeIntersector(V, F), tri_normal=tn.astype(np.float32),
-                      tri_emits=tri_emits, tri_scatters=tri_scatters)
+                      tri_emits=tri_emits, tri_scatters=tri_scatters,
+                      env_map=(None if env_map is None or lighting != "scan" else np.asarray(env_map, np.float32)),
+                      up=None if up is None else np.asarray(up, np.float64))

@@ -49,7 +49,7 @@ def _room_radiance(scene: TraceScene, room_isect: Intersector, org: np.ndarray,
                    dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Radiance (R, 3) float64 that rays receive from the room (or the environment) and the hit distance."""
     hr = room_isect.intersect(org, dirs)
-    L = np.tile(scene.env_radiance.astype(np.float64), (org.shape[0], 1))
+    L = np.array(scene.escape_radiance(dirs), np.float64)
     hit = hr.hit
     if hit.any():
         E = scene.emission

@@ -151,6 +151,11 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     library = {o.obj_id: o for o in load_objects(ctx.run_dir)}
     rv, rf, rc = read_room_ply(room_mesh_path(ctx.run_dir, scan, cfg.room_mesh))
     env = None if cfg.env_radiance < 0 else np.full(3, cfg.env_radiance, np.float32)
+    light_v = env_map = None
+    if cfg.lighting == "scan" and cfg.photo_frames > 0:   # per scan, not per item: same result in every chunk
+        from pipeline.trace.photolights import scan_lighting
+
+        light_v, env_map = scan_lighting(scan, rv, rf, rc, cfg, ctx.cfg.run.seed)
     scene = None
     split = (None, None)
     out = {}
@@ -162,7 +167,8 @@ def run_item(ctx: StageContext, item: Item) -> dict:
             scene = build_scene(rv, rf, rc, _instances(doc, stem, library), lighting=cfg.lighting,
                                 radiance_scale=cfg.radiance_scale, light_threshold=cfg.light_threshold,
                                 light_gain=cfg.light_gain, env_radiance=env,
-                                published_power=cfg.published_power, up=scan.up_w)
+                                published_power=cfg.published_power, up=scan.up_w,
+                                light_vertices=light_v, env_map=env_map)
             if cfg.shadow_samples > 0:
                 split = split_intersectors(scene)
         out[f"f{frame:06d}"] = trace_frame(ctx, scene, scene_name, drop, frame, doc, labels,

@@ -395,3 +395,114 @@ def test_texture_and_vertex_colour_models_give_their_base_colour():
     red = np.all(np.isclose(a, [1, 0, 0], atol=1e-6), axis=1)
     blue = np.all(np.isclose(a, [0, 0, 1], atol=1e-6), axis=1)
     assert red.sum() > 50 and blue.sum() > 50 and (red | blue).mean() > 0.8
+
+
+# --------------------------------------------------------------------------------------------------
+# Photo-based lighting (pipeline/trace/photolights.py)
+# --------------------------------------------------------------------------------------------------
+
+def _open_room():
+    """Box room (-2,-3,-2)..(2,3,2) without its ceiling (z = 2): rays upward escape, as through a scan's hole."""
+    rv, rf = box_room((-2, -3, -2), (2, 3, 2), n=8)
+    keep = ~(rv[rf][:, :, 2] > 1.99).all(axis=1)
+    return rv, rf[keep]
+
+
+def _photo_of(room_scene, cam, lamp, miss_value):
+    """What a camera sees: 255 on ``lamp(points)``, 128 elsewhere on the room, ``miss_value`` where rays escape."""
+    from pipeline.trace.pbr import primary_rays
+
+    n = cam.width * cam.height
+    o, d = primary_rays(cam, np.arange(n), np.full((n, 2), 0.5))
+    h = room_scene.intersector.intersect(o, d)
+    p = o + np.where(h.hit, h.t, 0)[:, None] * d
+    val = np.where(h.hit, np.where(lamp(p), 255, 128), miss_value).astype(np.uint8)
+    return np.repeat(val[:, None], 3, axis=1).reshape(cam.height, cam.width, 3)
+
+
+@pytest.mark.parametrize("miss_value", [200, 255])
+def test_photo_lights_mark_clipped_vertices_and_map_escaping_rays(miss_value):
+    from pipeline.trace.photolights import photo_lights
+
+    rv, rf = _open_room()
+    room = build_scene(rv, rf, None, [])
+    cam = camera(eye=(0.0, -2.0, 0.0), target=(0.0, 1.0, 1.6), w=64, h=48, f=30.0)
+
+    def lamp(p):  # a clipped patch on the far wall y = 3
+        return (p[:, 1] > 2.99) & (np.abs(p[:, 0]) < 1.0) & (p[:, 2] > -1.0) & (p[:, 2] < 0.5)
+
+    photo = _photo_of(room, cam, lamp, miss_value)
+    assert (photo == 255).any() and (photo == 128).any() and (photo == miss_value).any()
+    pl = photo_lights(room.vertices, room.faces, room.intersector, [(photo, cam.K, cam.T_c2w)] * 2,
+                      up=np.array([0.0, 0.0, 1.0]), stride=1, light_gain=4.0)
+    lv = rv[pl.light_vertices]
+    cell = 0.75  # box_room cell size on the y = 3 wall (4 m / 8 in x, 4 m / 8 in z) + margin
+    assert len(lv) >= 4 and (lv[:, 1] > 2.99).all() and (np.abs(lv[:, 0]) <= 1.0 + cell).all()
+    assert (lv[:, 2] >= -1.0 - cell).all() and (lv[:, 2] <= 0.5 + cell).all()
+    assert pl.seen[pl.light_vertices].min() >= 2 and pl.frames_used == 2
+    seen = pl.env_count > 0
+    want = float(srgb_to_linear(np.uint8(miss_value))) * (4.0 if miss_value == 255 else 1.0)
+    assert seen.any() and (~seen).any()
+    np.testing.assert_allclose(pl.env[seen], want, rtol=1e-5)
+    np.testing.assert_allclose(pl.env[~seen], want, rtol=1e-5)   # fallback: mean of the seen bins
+    # the seen bins point up (the open ceiling), the energy-balance samples are unclipped room points
+    from pipeline.trace.photolights import ENV_H
+    assert np.flatnonzero(seen.any(axis=1)).max() < ENV_H // 2
+    grey = float(srgb_to_linear(np.uint8(128)))   # a grey's luminance is its value (weights sum to 1)
+    assert len(pl.points) > 0 and np.allclose(pl.radiance, grey, rtol=1e-5)
+
+
+def test_balance_unseen_gives_radiance_over_albedo_under_an_open_sky():
+    """A floor alone: every hemisphere ray of a floor point escapes unseen, so the unseen radiance is L / rho."""
+    from pipeline.trace.photolights import ENV_H, ENV_W, PhotoLights, balance_unseen
+
+    fv, ff = grid_quad((0, 0, 0), (2, 0, 0), (0, 2, 0), 4)
+    floor = build_scene(fv, ff, None, [], room_linear_radiance=np.full((len(fv), 3), 0.2),
+                        up=np.array([0.0, 0.0, 1.0]))
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-1, 1, (50, 2)), np.zeros(50)].astype(np.float32)
+    pl = PhotoLights(light_vertices=np.zeros(len(fv), bool), seen=np.zeros(len(fv), np.int32),
+                     clipped=np.zeros(len(fv), np.int32), env=np.zeros((ENV_H, ENV_W, 3), np.float32),
+                     env_count=np.zeros((ENV_H, ENV_W), np.int32), frames_used=1, points=pts,
+                     normals=np.tile(np.float32([0, 0, 1]), (50, 1)), radiance=np.full(50, 0.2, np.float32))
+    assert balance_unseen(floor, pl, np.random.default_rng(1), albedo=0.5) == pytest.approx(0.4, rel=1e-5)
+    assert balance_unseen(floor, pl, np.random.default_rng(1), albedo=0.25) == pytest.approx(0.8, rel=1e-5)
+    # a closed emitting room leaves nothing unseen: no vote, None (the stage keeps its constant fallback)
+    rv, rf = box_room((-2, -3, -2), (2, 3, 2), n=4)
+    box = build_scene(rv, rf, None, [], room_linear_radiance=np.full((len(rv), 3), 0.3))
+    pl2 = dataclasses.replace(pl, points=np.c_[pts[:, :2], np.full(50, -1.99, np.float32)].astype(np.float32))
+    assert balance_unseen(box, pl2, np.random.default_rng(1)) is None
+
+
+def test_light_vertices_become_sampled_lights_and_are_checked():
+    rv, rf = box_room((-2, -3, -2), (2, 3, 2), n=4)
+    col = np.full((len(rv), 3), 128, np.uint8)
+    lv = rv[:, 2] > 1.99
+    sc = build_scene(rv, rf, col, [], light_gain=4.0, radiance_scale=2.0, light_vertices=lv)
+    np.testing.assert_allclose(sc.emission[:len(rv)][lv], 8.0)
+    np.testing.assert_allclose(sc.emission[:len(rv)][~lv], srgb_to_linear(np.uint8(128)) * 2.0, rtol=1e-6)
+    assert sc.area_lights.count > 0
+    assert build_scene(rv, rf, col, [], light_vertices=np.zeros(len(rv), bool)).area_lights.count == 0
+    assert build_scene(rv, rf, col, [], light_gain=0.0, light_vertices=lv).area_lights.count == 0
+    with pytest.raises(ValueError, match="light_vertices"):
+        build_scene(rv, rf, col, [], light_vertices=lv[:-1])
+
+
+def test_white_furnace_under_an_environment_map():
+    """A uniform environment map of radiance 1 is the furnace; a map bright only above lights the top."""
+    from pipeline.trace.photolights import ENV_H, ENV_W
+
+    env = np.ones((ENV_H, ENV_W, 3), np.float32)
+    sc = build_scene(*EMPTY, [sphere_object(specular=0.0)], env_map=env, up=np.array([0.0, 0.0, 1.0]))
+    fb = render(sc, camera(), np.ones((36, 48), bool), RenderSettings(spp=8, spp_min=8), np.random.default_rng(0))
+    px = fb.pbr[_interior(fb)]
+    assert px.size > 300 and abs(px.mean() - 1.0) < TRACE_FURNACE_REL_TOL
+    top = env.copy()
+    top[ENV_H // 2:] = 0.0   # nothing from below the horizon
+    sc = build_scene(*EMPTY, [sphere_object(specular=0.0)], env_map=top, up=np.array([0.0, 0.0, 1.0]))
+    fb = render(sc, camera(), np.ones((36, 48), bool), RenderSettings(spp=8, spp_min=8), np.random.default_rng(0))
+    lum = fb.pbr.mean(axis=2)
+    inner = _interior(fb)
+    rows = np.arange(36)[:, None] * np.ones((1, 48))
+    top, bottom = lum[inner & (rows < 14)].mean(), lum[inner & (rows > 21)].mean()   # image y down
+    assert top > 0.75 and bottom < 0.25

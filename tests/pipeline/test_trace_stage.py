@@ -150,8 +150,11 @@ def test_denoise_rejects_unknown_method():
 # Stage
 # --------------------------------------------------------------------------------------------------
 
-def _make_run(run: Path, *, obj_id_in_frame: int = 1) -> None:
-    """A run folder with one ingested scene (a box room), a library of one sphere, one raster frame."""
+def _make_run(run: Path, *, obj_id_in_frame: int = 1, photo_level: int | None = None) -> None:
+    """A run folder with one ingested scene (a box room), a library of one sphere, one raster frame.
+
+    ``photo_level``: the frame gets a uniform colour photo of that grey level (else none).
+    """
     from pipeline.ingest import save_scan
     from pipeline.objects import save_library
     from pipeline.scanformats.mesh import ply_bytes
@@ -165,7 +168,13 @@ def _make_run(run: Path, *, obj_id_in_frame: int = 1) -> None:
     W, H = 40, 30
     K = np.array([[36.0, 0, 19.5], [0, 36.0, 14.5], [0, 0, 1]])
     T = look_at((0, -1.8, 0.6), (0, 0, 0.25))
-    scan = Scan(name="room", root=str(scene_dir), format="7scenes", frame_ids=np.arange(1), color_paths=("",),
+    color = ""
+    if photo_level is not None:
+        from pipeline.io import atomic_write_image
+
+        color = str(scene_dir / "frame-000000.color.png")
+        atomic_write_image(Path(color), np.full((H, W, 3), photo_level, np.uint8))
+    scan = Scan(name="room", root=str(scene_dir), format="7scenes", frame_ids=np.arange(1), color_paths=(color,),
                 depth_paths=("",), width=W, height=H, K=K[None], T_c2w=T[None], depth_width=W, depth_height=H,
                 depth_K=K[None], depth_scale=0.001, depth_registered=True, up_w=np.array([0, 0, 1.0]),
                 mesh_path=str(scene_dir / "room.ply"))
@@ -285,3 +294,25 @@ def test_stage_plans_nothing_without_raster_output(tmp_path):
     from pipeline.trace.stage import STAGE
 
     assert STAGE.plan(_ctx(tmp_path)) == []
+
+
+def test_photo_lighting_lights_what_the_photos_see_clipped_and_is_off_with_zero_frames(tmp_path):
+    from pipeline.trace.stage import STAGE, output_path
+
+    out = {}
+    for name, level, frames in (("none", None, 24), ("grey", 180, 24), ("clipped", 255, 24), ("off", 255, 0)):
+        run = tmp_path / name
+        _make_run(run, photo_level=level)
+        ctx = _ctx(run, spp=8, shadow_samples=4, photo_frames=frames)
+        STAGE.run_item(ctx, STAGE.plan(ctx)[0])
+        out[name] = output_path(run, "room", 0, 0).read_bytes()
+        a = load_npz(output_path(run, "room", 0, 0))
+        out[name + "_pbr"] = float(a["pbr"].mean())
+        STAGE.run_item(ctx, STAGE.plan(ctx)[0])
+        assert output_path(run, "room", 0, 0).read_bytes() == out[name]   # deterministic
+    # no photo, or photo lighting off: the mesh colours alone, as before
+    assert out["off"] == out["none"]
+    # a photo the mesh agrees with (no clipping, the closed room leaves no hole) changes nothing either
+    assert out["grey"] == out["none"]
+    # every surface the photo saw is clipped: those become lights and the object gets brighter
+    assert out["clipped_pbr"] > 1.5 * out["none_pbr"]
