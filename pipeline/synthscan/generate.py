@@ -177,7 +177,8 @@ def _transform_points(T: np.ndarray, P: np.ndarray) -> np.ndarray:
 
 
 def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, height: int = 480,
-              frames: int = 50, contact_sheet: str | Path | None = None, photo_mode: str = "raster") -> Path:
+              frames: int = 50, contact_sheet: str | Path | None = None, photo_mode: str = "raster",
+              camera=None) -> Path:
     """Write a synthetic room scan in ``layout`` to ``out_dir``, with its ground truth.
 
     Parameters
@@ -189,6 +190,9 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
     frames : number of frames
     contact_sheet : optional PNG path for a contact sheet of the frames (blurred ones marked)
     photo_mode : "raster" (pyrender) or "traced" (path tracer, see ``render.TracedPhotoRenderer``)
+    camera : :class:`~pipeline.synthscan.degrade.CameraModel` or None; traced mode only: the camera's PSF
+        and sensor noise on every photo (recorded in ``ground_truth/scan.json`` as ``camera``); None = the
+        default sensor noise and no PSF (the outputs of earlier versions, byte for byte)
 
     Returns
     -------
@@ -201,6 +205,8 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
     from pipeline.synthscan.trajectory import exposure_path, walk
 
     _check_args(layout, seed, width, height, frames)
+    if camera is not None and photo_mode != "traced":
+        raise UserError(f"make_scan: a camera model is for photo_mode 'traced' only, not {photo_mode!r}")
     seed, width, height, frames = int(seed), int(width), int(height), int(frames)
     out = Path(out_dir)
     _prepare_out(out)
@@ -272,7 +278,7 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
                     img = degrade.defocus(img, r)
                     blur = {"kind": "defocus", "strength_px": r, "psf": "disk", "radius_px": r}
             strengths[i] = blur["strength_px"]
-            photo = degrade.encode_photo(img, rng)
+            photo = degrade.camera_photo(img, camera, rng)
             true_depth = renderer.render_depth(T, cams.depth_K, cams.depth_width, cams.depth_height)
             depth_mm = degrade.degrade_depth(true_depth, cams.depth_K, rng)
             files += write_frame(out, layout, i, photo, depth_mm, poses[i], bool(pose_valid[i]))
@@ -333,6 +339,8 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
         "frames_info": frame_docs,
         "files": sorted(files + [f"{GT_DIR}/scan.json"]),
     }
+    if camera is not None:
+        doc["camera"] = camera.to_dict()
     atomic_write_json(out / GT_DIR / "scan.json", doc)
     log.info("wrote %s scan with %d frames to %s", layout, frames, out)
     return out

@@ -190,3 +190,66 @@ def test_bad_traced_settings_are_user_errors(room):
         TracedPhotoRenderer(room, mesh, vr, exposure=1.0, spp=0)
     with pytest.raises(UserError, match="denoise"):
         TracedPhotoRenderer(room, mesh, vr, exposure=1.0, denoise="magic")
+
+
+# --------------------------------------------------------------------------------------------------
+# Camera model (degrade.CameraModel / camera_photo): the same camera on the photo and on the truth
+# --------------------------------------------------------------------------------------------------
+
+def test_camera_photo_without_a_model_is_the_default_encode_byte_for_byte():
+    from pipeline.synthscan.degrade import CameraModel, camera_photo, encode_photo
+
+    x = np.random.default_rng(0).uniform(0, 1.2, (20, 30, 3)).astype(np.float32)
+    ref = encode_photo(x, np.random.default_rng(5))
+    assert np.array_equal(camera_photo(x, None, np.random.default_rng(5)), ref)
+    assert np.array_equal(camera_photo(x, CameraModel(), np.random.default_rng(5)), ref)
+
+
+@pytest.mark.parametrize("sigma", [0.8, 1.5])
+def test_camera_psf_keeps_energy_and_blurs_a_step_by_its_sigma(sigma):
+    from pipeline.synthscan.degrade import CameraModel, camera_psf
+
+    flat = np.full((30, 40, 3), 0.37, np.float32)
+    np.testing.assert_allclose(camera_psf(flat, CameraModel(blur_sigma=sigma, defocus_radius=1.5)), 0.37, rtol=1e-5)
+    step = np.zeros((30, 64, 3), np.float32)
+    step[:, 32:] = 1.0
+    g = np.diff(camera_psf(step, CameraModel(blur_sigma=sigma))[15, :, 0].astype(np.float64))
+    x = np.arange(g.size) + 0.5
+    mu = (g * x).sum() / g.sum()
+    assert g.sum() == pytest.approx(1.0, abs=1e-4)
+    assert np.sqrt((g * (x - mu) ** 2).sum() / g.sum()) == pytest.approx(sigma, rel=0.05)
+
+
+def test_camera_model_is_for_traced_photos_only(tmp_path):
+    from pipeline.synthscan import make_scan
+    from pipeline.synthscan.degrade import CameraModel
+
+    with pytest.raises(UserError, match="traced"):
+        make_scan(tmp_path / "r", layout="7scenes", seed=1, width=48, height=36, frames=1,
+                  camera=CameraModel(blur_sigma=1.0))
+
+
+@pytest.mark.slow
+def test_traced_scan_through_a_soft_camera_is_recorded_and_softer(tmp_path):
+    import cv2
+
+    from pipeline.io import read_json
+    from pipeline.synthscan import make_scan
+    from pipeline.synthscan.degrade import CameraModel
+
+    args = dict(layout="7scenes", seed=1, width=64, height=48, frames=1, photo_mode="traced")
+    cam = CameraModel(blur_sigma=1.5, read_noise=0.0, shot_noise=0.0)
+    a = make_scan(tmp_path / "a", **args)
+    b = make_scan(tmp_path / "b", camera=cam, **args)
+    doc = read_json(b / "ground_truth" / "scan.json")
+    assert doc["camera"] == cam.to_dict() and "camera" not in read_json(a / "ground_truth" / "scan.json")
+    rel = next(f for f in doc["files"] if f.endswith(".color.png"))
+
+    def sharpness(p):
+        g = cv2.cvtColor(cv2.imread(str(p)), cv2.COLOR_BGR2GRAY).astype(np.float64)
+        return np.abs(cv2.Laplacian(g, cv2.CV_64F)).mean()
+
+    assert sharpness(b / rel) < 0.6 * sharpness(a / rel)
+    for f in doc["files"]:   # depth is the camera's geometry, not its optics
+        if "depth" in f:
+            assert (a / f).read_bytes() == (b / f).read_bytes(), f
