@@ -160,53 +160,88 @@ def solve_contacts(model: Model, state: State, contacts: Contacts, vel_free: np.
     target[:, 1:] = u[:, 1:] * max(0.0, 1 - bb * dt)   # never reverse the slip (energy)
     Rrow = np.stack([np.where(soft, Rn, 1e-9 * Ann), Rn / opt.impratio, Rn / opt.impratio], axis=1)
     Rv = Rrow.reshape(-1)
-    WfT = np.ascontiguousarray(Wf.T)
-
-    def H(y: np.ndarray) -> np.ndarray:
-        return Jf @ (WfT @ y) + Rv * y
-
     c = (target - uf).reshape(-1)
     mu = contacts.friction[ci]
     # Jacobi preconditioner: one scalar per contact (keeps the cone projection a projection)
     pre = np.repeat(1.0 / (Ann + Rrow[:, 0]), 3)
     sq = np.sqrt(pre)
+    # H = A + R formed once (3K x 3K) while that is cheaper than two products with the Jacobian: each
+    # iteration is then one matrix-vector product (the call count, not the flops, costs at these sizes)
+    dense = 3 * K <= 12 * nd
+    if dense:
+        H = Jf @ Wf.T
+        H[np.diag_indices_from(H)] += Rv
+
+        def hmul(v: np.ndarray) -> np.ndarray:
+            return H @ v
+    else:
+        WfT = np.ascontiguousarray(Wf.T)
+
+        def hmul(v: np.ndarray) -> np.ndarray:
+            return Jf @ (WfT @ v) + Rv * v
     # step size from the largest eigenvalue of the preconditioned matrix (power iteration)
     x = np.ones(3 * K)
     for _ in range(10):
-        x = sq * H(sq * x)
+        x = sq * hmul(sq * x)
         x /= np.linalg.norm(x)
-    L = float(x @ (sq * H(sq * x))) * 1.05 + 1e-12
+    L = float(x @ (sq * hmul(sq * x))) * 1.05 + 1e-12
     step = pre / L
+    # projected gradient step z = y - step (H y - c) = M y + step c
+    sc = step * c
+    if dense:
+        M = -step[:, None] * H
+        M[np.diag_indices_from(M)] += 1.0
+    else:
+        nstepJ = -step[:, None] * Jf
+    wr = 1.0 / step                  # metric of the gradient mapping (restart test)
+    # impulse change -> velocity change of the bodies (m/s; spin x bound radius): the stopping measure.
+    # Redundant contacts (a face on a plane) make the impulses' split ill-conditioned, not the motion
+    bnd = model.body_bound[bodies]
+    Ws = (Wf * np.concatenate([np.ones((nd, 3)), np.repeat(bnd[:, None], 3, 1)], axis=1).reshape(-1)).T.copy()
+    dv_it = np.empty(6 * nd)
     p = np.zeros((K, 3)) if warm is None else project_cone(warm[ci], mu)
     p = p.reshape(-1)
     y = p.copy()
     theta = 1.0
     it = 0
     res = np.inf
+    z = np.empty(3 * K)
+    zK = z.reshape(K, 3)
+    tm = np.empty(K)
+    lim = np.empty(K)
+    dp = np.empty(3 * K)
+    tmp = np.empty(3 * K)
     p_new = np.empty(3 * K)
-    pv = p_new.reshape(K, 3)
     for it in range(1, opt.iterations + 1):
-        g = Jf @ (WfT @ y)
-        g += Rv * y
-        g -= c
-        z = (y - step * g).reshape(K, 3)
+        if dense:
+            np.dot(M, y, out=z)
+        else:
+            np.dot(nstepJ, WfT @ y, out=z)
+            z -= step * Rv * y
+            z += y
+        z += sc
         # project_cone, inlined (this loop is the solver's cost)
-        pn = np.maximum(z[:, 0], 0.0)
-        tm = np.sqrt(z[:, 1] * z[:, 1] + z[:, 2] * z[:, 2])
-        sc = np.minimum(1.0, mu * pn / np.maximum(tm, 1e-300))
-        pv[:, 0] = pn
-        np.multiply(z[:, 1:], sc[:, None], out=pv[:, 1:])
-        dp = p_new - p
-        res = float(np.max(np.abs(dp)))
-        if g @ dp > 0:  # adaptive restart (O'Donoghue & Candes): momentum points uphill
+        pv = p_new.reshape(K, 3)
+        np.maximum(zK[:, 0], 0.0, out=pv[:, 0])
+        np.hypot(zK[:, 1], zK[:, 2], out=tm)
+        np.multiply(mu, pv[:, 0], out=lim)
+        np.maximum(tm, 1e-300, out=tm)
+        np.divide(lim, tm, out=lim)
+        np.minimum(lim, 1.0, out=lim)
+        np.multiply(zK[:, 1:], lim[:, None], out=pv[:, 1:])
+        np.subtract(p_new, p, out=dp)
+        np.dot(Ws, dp, out=dv_it)
+        res = float(np.abs(dv_it).max())
+        np.subtract(y, p_new, out=tmp)
+        tmp *= wr
+        if tmp @ dp > 0:  # adaptive restart (O'Donoghue & Candes): momentum points uphill
             theta = 1.0
-            y = p_new
+            y = p_new.copy()
         else:
             th2 = 0.5 * (1 + np.sqrt(1 + 4 * theta * theta))
             y = p_new + ((theta - 1) / th2) * dp
             theta = th2
         p, p_new = p_new, p
-        pv = p_new.reshape(K, 3)
         if res < opt.tolerance:
             break
     dv = (Wf.T @ p).reshape(nd, 6)

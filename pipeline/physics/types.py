@@ -37,8 +37,9 @@ class Options:
     # keeps impacts inelastic without a rebound through the surface (b dt and R cancel exactly)
     impratio: float = 10.0           # friction rows are impratio x harder than normal rows
     rolling: float = 0.002           # m, rolling/torsional resistance length (0 = off)
-    iterations: int = 60             # solver iterations per step (upper bound)
-    tolerance: float = 1e-7          # solver stops when the impulse change is below this (N s)
+    iterations: int = 200            # solver iterations per step (upper bound)
+    tolerance: float = 1e-5          # m/s: solver stops when no body's velocity (any point within its
+    #                                  bounding sphere) changes by more than this in an iteration
     margin: float = 0.005            # contact detection distance beyond speculative margins, m
     contacts_per_pair: int = 6       # contact points kept per (body, body or static) pair and side
     sleep_linear: float = 0.01       # m/s below which a body may fall asleep
