@@ -173,6 +173,29 @@ class RoomMesh:
         return d, n
 
 
+    def cast(self, origins: np.ndarray, segments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """First crossing of the surface along segments.
+
+        Parameters
+        ----------
+        origins, segments
+            (N, 3) float64 world start points and segment vectors, m.
+
+        Returns
+        -------
+        t : (N,) float64 fraction of the segment at the first hit (``inf``: none within the segment)
+        normal : (N, 3) float64 unit face normal at the hit (either orientation)
+        """
+        if len(origins) == 0:
+            return np.zeros(0), np.zeros((0, 3))
+        o3d = self._o3d
+        hit = self._scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(
+            np.concatenate([origins, segments], axis=1), np.float32)))
+        t = hit["t_hit"].numpy().astype(float)
+        t[~(t <= 1.0)] = np.inf
+        return t, hit["primitive_normals"].numpy().astype(float)
+
+
 def speculative_margin(model: Model, state: State) -> np.ndarray:
     """(B,) float64, m: how far any point of each body can move this step, plus ``Options.margin``."""
     dt = model.opt.timestep
@@ -283,20 +306,27 @@ def collide(model: Model, state: State) -> Contacts:
             emit(body, np.full(len(body), -1), pts, np.broadcast_to(n, pts.shape).copy(), dk, B + p, vi)
         # --- room distance field -------------------------------------------------------------------
         if model.has_room:
-            near = model.room_thickness + rad[aw, None] + spec[aw, None]
-            vm = vmask[aw]
-            udf, grad = room_distance(model, Wv[aw])
+            # broad phase: the trilinear field changes by at most sqrt(3) per metre, so a body whose
+            # centre is farther from the surface than its points can reach has no candidate
+            cu, _ = room_distance(model, state.pos[aw], gradient=False)
+            ar = aw[~(cu - np.sqrt(3.0) * model.body_bound[aw] > model.room_thickness + rad[aw] + spec[aw]
+                      + 0.5 * model.room_spacing)]
+        if model.has_room and len(ar):
+            near = model.room_thickness + rad[ar, None] + spec[ar, None]
+            vm = vmask[ar]
+            Wr = Wv[ar]
+            udf, grad = room_distance(model, Wr)
             if model.room_mesh is not None:
                 sel = vm & (udf < near + 0.5 * model.room_spacing)
                 if np.any(sel):
                     de, ne = model.room_mesh.closest(
-                        Wv[aw][sel], np.broadcast_to(state.pos[aw][:, None, :], Wv[aw].shape)[sel])
+                        Wr[sel], np.broadcast_to(state.pos[ar][:, None, :], Wr.shape)[sel])
                     udf[sel] = de
                     grad[sel] = ne
-            d = udf - model.room_thickness - rad[aw, None]
-            d = np.where(vmask[aw], d, np.inf)
-            bi, vi, dk = _pick(d, Wv[aw], k, patch, spec[aw, None])
-            body = aw[bi]
+            d = udf - model.room_thickness - rad[ar, None]
+            d = np.where(vm, d, np.inf)
+            bi, vi, dk = _pick(d, Wr, k, patch, spec[ar, None])
+            body = ar[bi]
             nrm = grad[bi, vi]
             pts = Wv[body, vi] - nrm * rad[body, None]
             emit(body, np.full(len(body), -1), pts, nrm, dk, B + P, vi)
@@ -357,18 +387,24 @@ def collide(model: Model, state: State) -> Contacts:
                 # it, ignoring faces facing along the axis, is small) become contacts along that axis
                 useB = sepB[qa, fB] >= sepA[qa, fA] - 1e-6
                 n = np.where(useB[:, None], nWB[qa, fB], -nWA[qa, fA])               # (Q, 3) B -> A
-                projA = np.einsum("pvi,pi->pv", Wv[A_], n)
-                projB = np.einsum("pvi,pi->pv", Wv[B_], n)
-                hA = np.where(mA, projA, np.inf).min(axis=1)
-                hB = np.where(mB, projB, -np.inf).max(axis=1)
                 reach = (spec[A_] + spec[B_])[:, None]
                 lateral = model.opt.margin
-                for side, (proj, sd, nW, sgn, mask, owner) in enumerate((
-                        (projA - hB[:, None], sdAB, nWB, 1.0, mA, A_),
-                        (hA[:, None] - projB, sdBA, nWA, -1.0, mB, B_))):
-                    side_face = (sgn * np.einsum("pfi,pi->pf", nW, n)) < 0.7            # (Q, F)
-                    over = np.where(side_face[:, None, :], sd, -np.inf).max(axis=2)    # (Q, V)
-                    d = np.where(mask & (over < lateral), proj, np.inf)
+                for side, (sd, nW, sgn, mask, owner) in enumerate((
+                        (sdAB, nWB, 1.0, mA, A_), (sdBA, nWA, -1.0, mB, B_))):
+                    # each point's distance to the other body along the axis (towards it): the line
+                    # p + s u crosses the other polytope for s in [s_lo, s_hi] (each face plane bounds
+                    # s from one side); s_lo is where it enters: the gap (> 0) or depth (< 0). Points
+                    # whose line misses the other body (by more than the margin) are not over it. The
+                    # support plane of the other body along the axis would give every point over it
+                    # the depth of its lowest point: wrong lever arms for a body standing on an edge
+                    cf = -sgn * np.einsum("pfi,pi->pf", nW, n)[:, None, :]              # (Q, 1, F)
+                    with np.errstate(divide="ignore", invalid="ignore"):
+                        ratio = -sd / cf                                                # (Q, V, F)
+                    s_lo = np.where(cf < -1e-9, ratio, -np.inf).max(axis=2)            # (Q, V)
+                    s_hi = np.where(cf > 1e-9, ratio, np.inf).min(axis=2)
+                    par = np.where(np.abs(cf) <= 1e-9, sd, -np.inf).max(axis=2)
+                    miss = np.maximum(s_lo - s_hi, par)
+                    d = np.where(mask & (miss < lateral), s_lo, np.inf)
                     qi, vi, dk = _pick(d, Wv[owner], k, patch, reach)
                     emit(A_[qi], B_[qi], Wv[owner[qi], vi], n[qi], dk, B_[qi], vi + side * V)
     if not out["a"]:
