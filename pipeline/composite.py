@@ -270,24 +270,29 @@ def composite_full(photo: np.ndarray, pbr: np.ndarray, coverage: np.ndarray, sha
     objects = alpha > 0
     box = _bbox(objects, _BLUR_CROP_MARGIN)
     photo_edge = float("nan")
+    ring = _dilate(objects, _NOISE_BAND[1]) & ~_dilate(objects, _NOISE_BAND[0])
+    if ring.sum() < 256:
+        ring = ~objects
     if blur_sigma is None:
         if box is None:
             blur_sigma = 0.0
         else:
-            near = _dilate(alpha >= 0.5, 1)[box]   # the objects' own edges, not the photo's beside them
+            # the objects' silhouettes (not their soft interior shading, not the photo beside them)
+            half = alpha >= 0.5
+            near = (_dilate(half, 1) & _dilate(~half, 1))[box]
+            gray = cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY)
+            # the render is measured with the photo's own (gray) noise level: noise makes edges look sharper
+            grain = rng.standard_normal(gray[box].shape, dtype=np.float32) * np.float32(cl.noise_sigma(gray, ring))
             blur_sigma, photo_edge = cl.match_blur_sigma(
-                cv2.cvtColor(photo[box], cv2.COLOR_RGB2GRAY), ~_dilate(objects, 1)[box],
-                lambda s: cv2.cvtColor(cl.encode_u8(blend(s, box)[0]), cv2.COLOR_RGB2GRAY), near)
+                gray[box], ~_dilate(objects, 1)[box],
+                lambda s: cv2.cvtColor(cl.encode_u8(blend(s, box)[0]), cv2.COLOR_RGB2GRAY).astype(np.float32)
+                + grain, near)
     out_lin, al, s = blend(float(blur_sigma))
     out = cl.linear_to_srgb(out_lin) * np.float32(255.0)
 
     noise_added = 0.0
     if noise_sigma is None:
-        if box is None:
-            noise_sigma = 0.0
-        else:
-            ring = _dilate(objects, _NOISE_BAND[1]) & ~_dilate(objects, _NOISE_BAND[0])
-            noise_sigma = cl.noise_sigma(photo, ring) if ring.sum() >= 256 else cl.noise_sigma(photo, ~objects)
+        noise_sigma = 0.0 if box is None else cl.noise_sigma(photo, ring)
     if noise_sigma > 0 and objects.any():
         inner = (al >= 0.99) & ~_dilate(~(al >= 0.99), 1)
         render_sigma = cl.noise_sigma(np.clip(out, 0, 255), inner)
