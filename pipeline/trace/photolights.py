@@ -21,6 +21,7 @@ one. Cost: one Embree ray per grid pixel per frame used (``frames`` frames, ever
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass
 
@@ -242,7 +243,8 @@ def scan_lighting(scan, room_vertices: np.ndarray, room_faces: np.ndarray, room_
     """
     from pipeline.ingest import read_color
     from pipeline.seeding import item_rng
-    from pipeline.trace.scene import build_scene
+    from pipeline.trace.lights import detect_bright_triangles
+    from pipeline.trace.scene import boost_lights, build_scene
 
     room = build_scene(room_vertices, room_faces, room_colors, [], radiance_scale=cfg.radiance_scale,
                        light_threshold=cfg.light_threshold, light_gain=cfg.light_gain, up=scan.up_w)
@@ -259,9 +261,14 @@ def scan_lighting(scan, room_vertices: np.ndarray, room_faces: np.ndarray, room_
     env = pl.env * scale
     unseen = pl.env_count == 0
     if cfg.room_albedo > 0:
-        lit = build_scene(room_vertices, room_faces, room_colors, [], radiance_scale=cfg.radiance_scale,
-                          light_threshold=cfg.light_threshold, light_gain=cfg.light_gain, up=scan.up_w,
-                          light_vertices=pl.light_vertices, env_map=env)
+        # the room lit as the trace stage will light it (same boost as build_scene), without a second BVH
+        cols = (np.asarray(room_colors) if room_colors is not None
+                else np.full((len(room_vertices), 3), 188, np.uint8))
+        bright = (detect_bright_triangles(cols, room_faces, threshold=cfg.light_threshold) if cfg.light_gain > 0
+                  else np.zeros(len(room_faces), bool))
+        E, _ = boost_lights(srgb_to_linear(cols) * scale, room_faces, bright, pl.light_vertices,
+                            light_gain=cfg.light_gain, radiance_scale=cfg.radiance_scale)
+        lit = dataclasses.replace(room, emission=E, env_map=env)
         pl_scaled = PhotoLights(light_vertices=pl.light_vertices, seen=pl.seen, clipped=pl.clipped, env=env,
                                 env_count=pl.env_count, frames_used=pl.frames_used, points=pl.points,
                                 normals=pl.normals, radiance=pl.radiance * scale)

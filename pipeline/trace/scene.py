@@ -126,6 +126,41 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return n.astype(np.float32)
 
 
+def boost_lights(room_radiance: np.ndarray, room_faces: np.ndarray, bright: np.ndarray,
+                 light_vertices: np.ndarray | None, *, light_gain: float, radiance_scale: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The room's emission with its lights boosted (scan lighting), and which vertices are lights.
+
+    Vertices of ``bright`` triangles (clipped mesh colours) and ``light_vertices`` (seen clipped in the
+    photos; their radiance is sensor white x ``radiance_scale`` whatever the mesh colour) get
+    ``light_gain`` times their radiance.
+
+    Parameters
+    ----------
+    room_radiance : (V, 3) float32 linear radiance of the room's vertices
+    room_faces : (T, 3) int
+    bright : (T,) bool clipped triangles (:func:`~pipeline.trace.lights.detect_bright_triangles`)
+    light_vertices : (V,) bool or None; ignored when ``light_gain <= 0``
+
+    Returns
+    -------
+    emission : (V, 3) float32
+    boosted : (V,) bool
+    """
+    E = np.array(room_radiance, np.float32).reshape(-1, 3)
+    nrv = E.shape[0]
+    boosted = np.zeros(nrv, bool)
+    boosted[np.unique(np.asarray(room_faces)[np.asarray(bright, bool)])] = True
+    if light_vertices is not None and light_gain > 0:
+        lv = np.asarray(light_vertices, bool).reshape(-1)
+        if lv.shape[0] != nrv:
+            raise ValueError(f"light_vertices has {lv.shape[0]} entries, the room has {nrv} vertices")
+        E[lv & ~boosted] = np.float32(radiance_scale)   # seen clipped: sensor white
+        boosted |= lv
+    E[boosted] *= np.float32(light_gain)
+    return E, boosted
+
+
 def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: np.ndarray | None,
                 objects: list[ObjectInstance], *, lighting: str = "scan", radiance_scale: float = 1.0,
                 light_threshold: int = 250, light_gain: float = 4.0, env_radiance: np.ndarray | None = None,
@@ -198,14 +233,8 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
     E = np.concatenate(emis).astype(np.float32)
     boosted = np.zeros(nrv, bool)
     if lighting == "scan":
-        boosted[np.unique(rf[bright])] = True
-        if light_vertices is not None and light_gain > 0 and room_linear_radiance is None:
-            lv = np.asarray(light_vertices, bool).reshape(-1)
-            if lv.shape[0] != nrv:
-                raise ValueError(f"light_vertices has {lv.shape[0]} entries, the room has {nrv} vertices")
-            E[:nrv][lv & ~boosted] = np.float32(radiance_scale)   # seen clipped: sensor white
-            boosted |= lv
-        E[:nrv][boosted] *= np.float32(light_gain)
+        E[:nrv], boosted = boost_lights(E[:nrv], rf, bright, None if room_linear_radiance is not None else light_vertices,
+                                        light_gain=light_gain, radiance_scale=radiance_scale)
     light_mask = np.zeros(len(F), bool)
     if boosted.any():
         # every triangle touching a boosted vertex carries boosted emission: sample them all explicitly
