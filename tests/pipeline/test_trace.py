@@ -506,3 +506,25 @@ def test_white_furnace_under_an_environment_map():
     rows = np.arange(36)[:, None] * np.ones((1, 48))
     top, bottom = lum[inner & (rows < 14)].mean(), lum[inner & (rows > 21)].mean()   # image y down
     assert top > 0.75 and bottom < 0.25
+
+
+@pytest.mark.parametrize("level", [0, 255])
+def test_photo_lighting_of_black_and_saturated_photos_is_finite(level):
+    """All-black photos see no light and leave nothing to balance; all-saturated ones make every seen vertex a
+    light and an environment of light_gain: finite either way, and the tracer renders finite radiance."""
+    from pipeline.trace.photolights import balance_unseen, photo_lights
+
+    rv, rf = _open_room()
+    room = build_scene(rv, rf, None, [], up=np.array([0.0, 0.0, 1.0]))
+    cam = camera(eye=(0.0, -2.0, 0.0), target=(0.0, 1.0, 1.6), w=32, h=24, f=15.0)
+    photo = np.full((24, 32, 3), level, np.uint8)
+    pl = photo_lights(room.vertices, room.faces, room.intersector, [(photo, cam.K, cam.T_c2w)],
+                      up=np.array([0.0, 0.0, 1.0]), stride=1, light_gain=4.0)
+    assert np.isfinite(pl.env).all() and (pl.env >= 0).all()
+    assert pl.light_vertices.any() == (level == 255)
+    x = balance_unseen(room, pl, np.random.default_rng(0))
+    assert x is None if level == 255 else (x is not None and x == 0.0)   # clipped points do not vote
+    sc = build_scene(rv, rf, None, [sphere_object()], light_vertices=pl.light_vertices, env_map=pl.env,
+                     up=np.array([0.0, 0.0, 1.0]))
+    fb = render(sc, camera(), np.ones((36, 48), bool), RenderSettings(spp=2, spp_min=2), np.random.default_rng(0))
+    assert np.isfinite(fb.pbr).all()
