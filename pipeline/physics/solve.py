@@ -201,10 +201,12 @@ def solve_contacts(model: Model, state: State, contacts: Contacts, vel_free: np.
     dv_it = np.empty(6 * nd)
     p = np.zeros((K, 3)) if warm is None else project_cone(warm[ci], mu)
     p = p.reshape(-1)
+    p, exact = _active_set_solve(p.reshape(K, 3), hmul, c, mu, Jf, Wf, Rv, H if dense else None, soft)
+    p = p.reshape(-1)
     y = p.copy()
     theta = 1.0
     it = 0
-    res = np.inf
+    res = 0.0 if exact else np.inf
     z = np.empty(3 * K)
     zK = z.reshape(K, 3)
     tm = np.empty(K)
@@ -212,7 +214,7 @@ def solve_contacts(model: Model, state: State, contacts: Contacts, vel_free: np.
     dp = np.empty(3 * K)
     tmp = np.empty(3 * K)
     p_new = np.empty(3 * K)
-    for it in range(1, opt.iterations + 1):
+    for it in range(1, 0 if exact else opt.iterations + 1):
         if dense:
             np.dot(M, y, out=z)
         else:
@@ -249,6 +251,55 @@ def solve_contacts(model: Model, state: State, contacts: Contacts, vel_free: np.
     angvel[bodies] += dv[:, 3:]
     imp[ci] = p.reshape(K, 3)
     return SolveResult(vel, angvel, imp, it, res)
+
+
+def _active_set_solve(p0: np.ndarray, hmul, c: np.ndarray, mu: np.ndarray, Jf: np.ndarray, Wf: np.ndarray,
+                      Rv: np.ndarray, H: np.ndarray | None, soft: np.ndarray, rounds: int = 4
+                      ) -> tuple[np.ndarray, bool]:
+    """Direct solves on an active set grown from the warm start, checked against the optimality
+    conditions.
+
+    Contacts that carried load last step (``p0`` normal > 0) are taken as sticking: their rows solve
+    ``H_AA p_A = c_A`` exactly, the others get zero. The result is the solution when every loaded
+    contact lies inside its friction cone and every unloaded one is not pulled in (``g = H p - c`` in
+    the dual cone: ``g_n >= mu |g_t|``). Unloaded contacts that are pulled in join the set and loaded
+    ones with a negative normal impulse leave it, for a few rounds. At rest this ends in the solution
+    and no iteration is needed; otherwise (sliding contacts: on the cone's boundary) the projected
+    result is a warm start for the iterations. Only penetrating (soft) contacts take part: a loaded
+    speculative contact's hard row makes the system near-singular, so the iterations handle those steps.
+
+    Returns ``(p (K, 3), exact)``.
+    """
+    K = len(p0)
+    act = p0[:, 0] > 0
+    if not act.any() or np.any(act & ~soft):
+        return p0, False
+    scale = 1e-9 * (np.abs(c).max() + 1e-300)
+    cK = p0
+    for _ in range(rounds):
+        rows = np.repeat(act, 3)
+        if H is not None:
+            HA = H[np.ix_(rows, rows)]
+        else:
+            HA = Jf[rows] @ Wf[rows].T
+            HA[np.diag_indices_from(HA)] += Rv[rows]
+        try:
+            pa = np.linalg.solve(HA, c[rows])
+        except np.linalg.LinAlgError:
+            return p0, False
+        cand = np.zeros(3 * K)
+        cand[rows] = pa
+        cK = cand.reshape(K, 3)
+        if np.any(np.hypot(cK[act, 1], cK[act, 2]) > mu[act] * cK[act, 0]):
+            break                                   # sliding (or pulling) contacts: iterate instead
+        g = (hmul(cand) - c).reshape(K, 3)
+        pulled = ~act & (g[:, 0] + scale < mu * np.hypot(g[:, 1], g[:, 2]))
+        if not pulled.any():
+            return cK, True
+        if np.any(pulled & ~soft):
+            break
+        act = act | pulled
+    return project_cone(cK, mu), False
 
 
 def rolling_resistance(model: Model, state: State, contacts: Contacts, impulse: np.ndarray,
