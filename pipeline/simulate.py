@@ -8,6 +8,7 @@ rejected drops are written too, with their verdict, and counted in ``RUN/simulat
 
 from __future__ import annotations
 
+import functools
 import logging
 from pathlib import Path
 
@@ -81,7 +82,8 @@ def body_of(proxy: dict[str, np.ndarray], friction: float):
 
 
 def simulate(cfg: SimulateConfig, *, scene: str, drop: int, room: dict, up: np.ndarray,
-             proxies: dict[int, dict], rng: np.random.Generator, view=None) -> tuple[Placement, dict]:
+             proxies: dict[int, dict], rng: np.random.Generator, view=None, info=None
+             ) -> tuple[Placement, dict]:
     """One drop: sample objects, spawn them above the room and simulate them to rest.
 
     With ``view`` (a :class:`pipeline.view_spawn.ViewMap` of the kept frames) the spawn box is a square
@@ -100,12 +102,14 @@ def simulate(cfg: SimulateConfig, *, scene: str, drop: int, room: dict, up: np.n
         ``{obj_id: object proxy}`` of the library.
     rng
         The drop's own generator.
+    info
+        :func:`pipeline.physics.drop.room_info` of ``room`` for ``up`` (computed when None).
 
     Returns
     -------
     placement, facts (simulated seconds, steps)
     """
-    from pipeline.physics.drop import DropSettings, simulate_drop
+    from pipeline.physics.drop import DropSettings, room_info, simulate_drop
 
     ids = np.array(sorted(proxies), np.int32)
     n = cfg.objects_per_drop
@@ -119,13 +123,13 @@ def simulate(cfg: SimulateConfig, *, scene: str, drop: int, room: dict, up: np.n
                       max_penetration=cfg.max_penetration)
     facts: dict = {}
     r = None
+    info = room_info(room, up) if info is None else info
     if view is not None and len(view.score):
         from dataclasses import replace
 
-        from pipeline.physics.drop import room_bounds
         from pipeline.view_spawn import focus_bounds, sample_focus
 
-        room_lo, room_hi = room_bounds(room, view.R_w2g)    # view.R_w2g is the room frame
+        room_lo, room_hi = info.lo, info.hi    # view.R_w2g is the room frame (info.R_w2g)
         radii = [float(np.max(np.linalg.norm(np.asarray(proxies[int(i)]["hull_vertices"], float)
                                              - np.asarray(proxies[int(i)]["com"], float), axis=1)))
                  for i in chosen]
@@ -133,13 +137,13 @@ def simulate(cfg: SimulateConfig, *, scene: str, drop: int, room: dict, up: np.n
         for _ in range(FOCUS_TRIES):
             c = sample_focus(view, rng)
             r = simulate_drop(bodies, room=room, up=up, settings=replace(st, spawn_xy=1.0), rng=rng,
-                              spawn_bounds=focus_bounds(c, half, room_lo, room_hi))
+                              spawn_bounds=focus_bounds(c, half, room_lo, room_hi), info=info)
             if r.verdict != "rejected:spawn":
                 facts = {"focus_xy": [round(float(v), 6) for v in c], "focus_half_width": round(half, 6)}
                 break
             r = None
     if r is None:
-        r = simulate_drop(bodies, room=room, up=up, settings=st, rng=rng)
+        r = simulate_drop(bodies, room=room, up=up, settings=st, rng=rng, info=info)
     pl = Placement(scene=scene, drop=drop, obj_ids=chosen.astype(np.int32), R_m2w=r.R_m2w, t_m2w=r.t_m2w,
                    at_rest=r.at_rest, max_penetration=r.max_penetration, verdict=r.verdict)
     return pl, {"seconds": round(r.sim_time, 6), "steps": r.steps, **facts}
@@ -152,18 +156,60 @@ def plan(ctx: StageContext) -> list[Item]:
             for s in list_scenes(ctx.run_dir) for d in range(ctx.cfg.simulate.drops)]
 
 
+def _stamp(path: Path) -> tuple[str, int, int]:
+    """(path, mtime ns, size) of a file, or (path, -1, -1) when it is missing: a cache key that changes
+    when the file is rewritten."""
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        return str(path), -1, -1
+    return str(path), st.st_mtime_ns, st.st_size
+
+
+@functools.lru_cache(maxsize=2)
+def _cached_room(stamp: tuple[str, int, int], up: tuple[float, float, float]):
+    """Room proxy with its exact-distance mesh built, and its :class:`~pipeline.physics.drop.RoomInfo`,
+    once per worker process and room file (loading the grid, building the mesh's BVH and finding the
+    surface cost ~0.5 s, about a whole drop). Callers must not modify the returned dict."""
+    from pipeline.io import load_npz
+    from pipeline.physics.collide import RoomMesh
+    from pipeline.physics.drop import room_info
+
+    room = load_npz(stamp[0])
+    if "mesh_vertices" in room and "mesh_faces" in room:
+        room["room_mesh"] = RoomMesh(room.pop("mesh_vertices"), room.pop("mesh_faces"))
+    return room, room_info(room, np.array(up))
+
+
+@functools.lru_cache(maxsize=2)
+def _cached_view_map(run_dir: str, scene: str, selection: tuple[str, int, int],
+                     room_stamp: tuple[str, int, int], up: tuple[float, float, float]):
+    """:func:`_view_map` once per worker process, scene and selection file."""
+    from pipeline.ingest import load_scan
+
+    room, info = _cached_room(room_stamp, up)
+    return _view_map(Path(run_dir), load_scan(run_dir, scene), room, info.R_w2g)
+
+
 def run_item(ctx: StageContext, item: Item) -> dict:
     from pipeline.ingest import load_objects, load_scan
-    from pipeline.prep import load_object_proxy, load_room_proxy
+    from pipeline.prep import load_object_proxy, room_proxy_path
+    from pipeline.select import SELECTION_FILE
 
     scene, drop = item.data["scene"], int(item.data["drop"])
     scan = load_scan(ctx.run_dir, scene)
-    room = load_room_proxy(ctx.run_dir, scene)
+    path = room_proxy_path(ctx.run_dir, scene)
+    if not path.is_file():
+        raise UserError(f"{path}: room proxy is missing; run the 'prep' stage first")
+    up = tuple(float(v) for v in np.asarray(scan.up_w, float))
+    room, info = _cached_room(_stamp(path), up)
+    selection = _stamp(Path(ctx.run_dir) / "select" / scene / SELECTION_FILE)
+    view = _cached_view_map(str(ctx.run_dir), scene, selection, _stamp(path), up)
     proxies = {o.obj_id: load_object_proxy(ctx.run_dir, o.obj_id) for o in load_objects(ctx.run_dir)}
     if not proxies:
         raise InputError("the object library is empty; give objects.paths in the config")
     pl, facts = simulate(ctx.cfg.simulate, scene=scene, drop=drop, room=room, up=scan.up_w,
-                         proxies=proxies, rng=ctx.rng(item), view=_view_map(ctx.run_dir, scan, room))
+                         proxies=proxies, rng=ctx.rng(item), view=view, info=info)
     save_placement(placement_path(ctx.run_dir, scene, drop), pl, extra=facts)
     if pl.verdict != "accepted":
         log.info("%s: %s", item.key, pl.verdict)
@@ -171,9 +217,10 @@ def run_item(ctx: StageContext, item: Item) -> dict:
             "asleep": int(np.sum(pl.at_rest)), "objects": len(pl.obj_ids), **facts}
 
 
-def _view_map(run_dir: Path, scan, room: dict):
-    """Votes of the scene's kept frames for spawn cells in the room frame of
-    :func:`pipeline.physics.drop.room_frame` (None when nothing was selected or seen)."""
+def _view_map(run_dir: Path, scan, room: dict, R_w2g: np.ndarray | None = None):
+    """Votes of the scene's kept frames for spawn cells in the room frame ``R_w2g`` of
+    :func:`pipeline.physics.drop.room_frame` (computed when None; None when nothing was selected or
+    seen)."""
     from pipeline.physics.drop import room_frame
     from pipeline.select import load_selection
     from pipeline.view_spawn import view_map
@@ -182,7 +229,7 @@ def _view_map(run_dir: Path, scan, room: dict):
         frames = load_selection(run_dir, scan.name)
     except UserError:
         return None
-    vm = view_map(scan, frames, room_frame(room, scan.up_w))
+    vm = view_map(scan, frames, room_frame(room, scan.up_w) if R_w2g is None else R_w2g)
     if not len(vm.score):
         log.warning("%s: no kept frame sees an upward-facing surface; drops spawn over the whole room",
                     scan.name)

@@ -112,6 +112,27 @@ def room_bounds(room: dict | np.ndarray, R_w2g: np.ndarray) -> tuple[np.ndarray,
     return np.percentile(g, 0.5, axis=0), np.percentile(g, 99.5, axis=0)
 
 
+@dataclass(frozen=True)
+class RoomInfo:
+    """What drops need from a room's surface, computed once per room by :func:`room_info` (finding the
+    surface nodes of a large grid costs tens of milliseconds, as much as a few dozen steps)."""
+
+    surface: np.ndarray   # (N, 3) float64, m, world grid nodes at the surface (:func:`surface_points`)
+    R_w2g: np.ndarray     # (3, 3) float64 world -> room frame (:func:`room_frame`, z = up)
+    lo: np.ndarray        # (3,) float64, m, room bounds in that frame (:func:`room_bounds`)
+    hi: np.ndarray        # (3,) float64, m
+    floor: float          # m, floor height in that frame (:func:`floor_height`)
+
+
+def room_info(room: dict, up: np.ndarray) -> RoomInfo:
+    """:class:`RoomInfo` of a room proxy for the world up vector ``up`` (3,)."""
+    u = np.asarray(up, float) / np.linalg.norm(up)
+    surf = surface_points(room)
+    R = room_frame(surf, u)
+    lo, hi = room_bounds(surf, R)
+    return RoomInfo(surface=surf, R_w2g=R, lo=lo, hi=hi, floor=floor_height(surf, R))
+
+
 def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
@@ -169,7 +190,8 @@ def spawn(bodies: list[Body], model: Model, up: np.ndarray, settings: DropSettin
 def simulate_drop(bodies: list[Body], *, room: dict | None, up: np.ndarray, settings: DropSettings,
                   rng: np.random.Generator, planes: np.ndarray | None = None,
                   bounds: tuple[np.ndarray, np.ndarray] | None = None,
-                  spawn_bounds: tuple[np.ndarray, np.ndarray] | None = None) -> DropResult:
+                  spawn_bounds: tuple[np.ndarray, np.ndarray] | None = None,
+                  info: RoomInfo | None = None) -> DropResult:
     """Spawn ``bodies`` above the room and simulate them to rest.
 
     Parameters
@@ -192,18 +214,21 @@ def simulate_drop(bodies: list[Body], *, room: dict | None, up: np.ndarray, sett
         (lo, hi) replacing ``bounds`` as the spawn reference only (same frame: the room frame when
         ``bounds`` is None); the room's bounds still decide whether a body left the room. Used by the
         simulate stage to spawn above a surface the selected cameras see (pipeline/view_spawn.py).
+    info
+        :func:`room_info` of ``room`` for ``up``, computed once and shared by the drops of a room;
+        computed here when None.
     """
     up = np.asarray(up, float) / np.linalg.norm(up)
     opt = Options(timestep=settings.timestep, gravity=tuple(-9.81 * up), friction=settings.friction)
     if bounds is None:
         if room is None:
             raise ValueError("simulate_drop needs a room or explicit spawn bounds")
-        surf = surface_points(room)
-        R_w2g = room_frame(surf, up)
-        bounds = room_bounds(surf, R_w2g)
+        info = room_info(room, up) if info is None else info
+        R_w2g = info.R_w2g
+        bounds = (info.lo, info.hi)
         if settings.floor_plane:
             # the shell's outer face (room_thickness above the floor) is where bodies rest elsewhere
-            fl = np.array([[*up, floor_height(surf, R_w2g) + settings.room_thickness]])
+            fl = np.array([[*up, info.floor + settings.room_thickness]])
             planes = fl if planes is None else np.concatenate([np.asarray(planes, float).reshape(-1, 4), fl])
     else:
         R_w2g = gravity_frame(up)
