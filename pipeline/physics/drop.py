@@ -34,8 +34,10 @@ class DropSettings:
     p_velocity: float = 0.0                # probability that a body gets a random initial velocity/spin
     max_speed: float = 1.0                 # m/s, largest random initial speed
     max_spin: float = 6.0                  # rad/s, largest random initial spin
-    max_penetration: float = 0.01          # m, deeper final penetration rejects the drop
-    room_thickness: float = 0.01           # m, half-thickness of the scan surface shell
+    max_penetration: float = 0.002         # m, deeper final penetration rejects the drop
+    room_thickness: float = 0.005          # m, half-thickness of the scan surface shell (objects rest this
+    #                                        far above the scanned surface; exact room contacts and CCD
+    #                                        need the room mesh for a shell this thin, see ccd.py)
     friction: float = 0.5                  # Coulomb coefficient
     spawn_tries: int = 200                 # samples per body before giving up
     floor_plane: bool = True               # a static plane at the scan's floor catches bodies that fall
