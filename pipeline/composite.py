@@ -14,6 +14,8 @@ Two blends (``composite.mode``):
       objects the raster hid behind real geometry (real-depth fusion) stay hidden;
     * shadows and contact darkening by differential rendering: ``background = photo x shadow_ratio``
       in linear light;
+    * the photo's exposure (``composite.match_exposure``): the trace stage's per-frame ratio of the
+      photo to the room mesh colours multiplies the objects' radiance (cameras with auto exposure);
     * the camera's look (:mod:`pipeline.camera_look`): the same tone curve as the tracer's decode of
       the room colours (``linear_to_srgb(radiance x exposure / trace.radiance_scale)``), the photo's
       measured blur level applied to the object layer (and the shadow ratio) in linear light, and the
@@ -392,13 +394,16 @@ def run_item(ctx: StageContext, item: Item) -> dict:
         image = composite_published(photo, tr["pbr"], tr["ao"], labels > 0, coverage=tr["coverage"], gain=gain)
         info = {}
     else:
+        exposure = float(tr["exposure"]) if cfg.match_exposure and "exposure" in tr else 1.0
+        if not np.isfinite(exposure) or exposure <= 0:
+            exposure = 1.0
         res = composite_full(photo, tr["pbr"], tr["coverage"], tr["shadow_ratio"], labels, rng=ctx.rng(item),
-                             gain=gain, soft_edges=cfg.soft_edges, shadows=cfg.shadows,
+                             gain=gain * exposure, soft_edges=cfg.soft_edges, shadows=cfg.shadows,
                              blur_sigma=None if cfg.blur_sigma < 0 else cfg.blur_sigma,
                              noise_sigma=None if cfg.noise_sigma < 0 else cfg.noise_sigma,
                              edge_band=ctx.cfg.trace.edge_band)
         image = res.image
-        info = {"blur_sigma": res.blur_sigma, "photo_noise": round(res.photo_noise, 3),
+        info = {"exposure": round(exposure, 4), "blur_sigma": res.blur_sigma, "photo_noise": round(res.photo_noise, 3),
                 "noise_added": round(res.noise_added, 3),
                 "photo_edge_sigma": None if np.isnan(res.photo_edge_sigma) else round(res.photo_edge_sigma, 4)}
     real = resize_nearest(read_depth(scan, frame), w, h) if scan.depth_paths[frame] else None

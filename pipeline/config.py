@@ -248,6 +248,8 @@ class CompositeConfig:
     exposure: float = option(1.0, "photo exposure relative to the scan's room colours (rendered radiance x "
                              "this / trace.radiance_scale is encoded with the sRGB curve)", min=0.0,
                              min_exclusive=True)
+    match_exposure: bool = option(True, "full mode: scale the objects by the photo's exposure relative to the room "
+                                  "mesh colours, measured per frame by the trace stage (auto-exposure cameras)")
     depth_fill: str = option("none", "depth output where the real depth is invalid: none = keep 0, room = the "
                              "room mesh's rendered depth", choices=("none", "room"))
 

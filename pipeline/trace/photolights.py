@@ -284,3 +284,58 @@ def scan_lighting(scan, room_vertices: np.ndarray, room_faces: np.ndarray, room_
              int((np.asarray(room_colors).min(axis=1) >= cfg.light_threshold).sum()) if room_colors is not None else 0,
              int((~unseen).sum()), unseen.size, float(env[unseen].mean()) if unseen.any() else 0.0)
     return pl.light_vertices, env.astype(np.float32)
+
+
+MIN_EXPOSURE_SAMPLES = 64        # room pixels needed to measure a frame's exposure
+EXPOSURE_RANGE = (0.25, 4.0)     # a frame's measured exposure is clamped to this range
+
+
+def frame_exposure(scene, cam, photo: np.ndarray, *, radiance_scale: float = 1.0, threshold: int = 250,
+                   grid: int = GRID_W) -> float:
+    """The photo's exposure relative to the room mesh's colours: 1 = the mesh's own exposure.
+
+    A camera with automatic exposure takes each frame brighter or darker than the average the mesh
+    colours were fused from; objects lit by the mesh must be scaled by the same factor to match the
+    photo around them. Primary rays on a grid of about ``grid`` pixels per row hit the room; the factor
+    is the median ratio of the photo's linear luminance to the mesh's (its emission / ``radiance_scale``)
+    over room hits that are neither lights nor clipped nor near black in the photo.
+
+    Parameters
+    ----------
+    scene : :class:`~pipeline.trace.scene.TraceScene` (room triangles have ``tri_inst == 0``)
+    cam : :class:`~pipeline.trace.pbr.Camera` of the photo (its resolution)
+    photo : (H, W, 3) uint8 sRGB
+    radiance_scale : the trace stage's ``radiance_scale``
+    threshold : clipped photo pixels (every channel >= this) are left out
+
+    Returns
+    -------
+    float in :data:`EXPOSURE_RANGE`; 1.0 when fewer than :data:`MIN_EXPOSURE_SAMPLES` pixels qualify
+    """
+    from pipeline.trace.pbr import primary_rays
+
+    photo = np.asarray(photo, np.uint8)
+    h, w = photo.shape[:2]
+    if (h, w) != (cam.height, cam.width) or scene.num_room_tris == 0:
+        return 1.0
+    stride = max(1, round(w / grid))
+    ys, xs = np.mgrid[stride // 2:h:stride, stride // 2:w:stride]
+    pix = (ys * w + xs).ravel()
+    o, d = primary_rays(cam, pix, np.full((pix.size, 2), 0.5, np.float32))
+    hits = scene.intersector.intersect(o, d)
+    prim = np.maximum(hits.prim, 0)
+    room = hits.hit & (scene.tri_inst[prim] == 0) & (scene.area_lights.prob_of_tri[prim] == 0)
+    col = photo.reshape(-1, 3)[pix]
+    ok = room & (col.max(axis=1) < threshold)
+    if ok.sum() < MIN_EXPOSURE_SAMPLES:
+        return 1.0
+    fr = scene.faces[prim[ok]]
+    a, b = hits.u[ok][:, None], hits.v[ok][:, None]
+    E = scene.emission
+    mesh = ((1 - a - b) * E[fr[:, 0]] + a * E[fr[:, 1]] + b * E[fr[:, 2]]) @ LUMINANCE / np.float32(radiance_scale)
+    lum = srgb_to_linear(col[ok]) @ LUMINANCE
+    good = (mesh > 0.02) & (lum > 0.02)
+    if good.sum() < MIN_EXPOSURE_SAMPLES:
+        return 1.0
+    ratio = float(np.exp(np.median(np.log(lum[good] / mesh[good]))))
+    return float(np.clip(ratio, *EXPOSURE_RANGE))

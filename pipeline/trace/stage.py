@@ -14,7 +14,9 @@ for tracing (``RUN/prep/<scene>/room_trace.ply``, else the ingest room mesh). It
 - ``coverage`` (H, W) float32 in [0, 1]: share of the pixel covered by an unoccluded object;
 - ``shadow_ratio`` (H, W) float32: room light with objects / without (1 where unchanged);
 - ``albedo`` (H, W, 3) float32 and ``normal`` (H, W, 3) float32 (camera frame), premultiplied;
-- ``spp`` (H, W) uint16: samples taken per pixel.
+- ``spp`` (H, W) uint16: samples taken per pixel;
+- ``exposure`` () float32: the photo's exposure relative to the room mesh colours (1 = the same; see
+  :func:`pipeline.trace.photolights.frame_exposure`; 1 without a photo).
 """
 
 from __future__ import annotations
@@ -104,8 +106,12 @@ def _instances(doc: dict, stem: Path, library: dict) -> list:
 
 
 def trace_frame(ctx: StageContext, scene, scene_name: str, drop: int, frame: int, doc: dict,
-                labels: np.ndarray, *, room_isect=None, obj_isect=None) -> dict:
-    """Trace one frame with a prebuilt scene and write its NPZ; returns the frame's summary."""
+                labels: np.ndarray, *, room_isect=None, obj_isect=None, exposure: float = 1.0) -> dict:
+    """Trace one frame with a prebuilt scene and write its NPZ; returns the frame's summary.
+
+    ``exposure``: the photo's exposure relative to the room mesh colours
+    (:func:`pipeline.trace.photolights.frame_exposure`), stored for the compositor.
+    """
     from pipeline.seeding import item_rng
     from pipeline.trace.denoise import denoise, denoise_ao
     from pipeline.trace.pbr import Camera, render, trace_mask
@@ -130,7 +136,7 @@ def trace_frame(ctx: StageContext, scene, scene_name: str, drop: int, frame: int
           if cfg.shadow_samples > 0 else np.ones(labels.shape, np.float32))
     atomic_save_npz(output_path(ctx.run_dir, scene_name, drop, frame), pbr=pbr.astype(np.float32),
                     ao=ao, coverage=fb.coverage, shadow_ratio=sr, albedo=fb.albedo, normal=fb.normal,
-                    spp=np.minimum(fb.spp, 65535).astype(np.uint16))
+                    spp=np.minimum(fb.spp, 65535).astype(np.uint16), exposure=np.float32(exposure))
     traced = int(mask.sum())
     return {"traced_px": traced, "object_px": int((labels > 0).sum()), "rays": int(fb.rays),
             "mean_spp": round(float(fb.spp[mask].mean()), 3) if traced else 0.0,
@@ -171,8 +177,17 @@ def run_item(ctx: StageContext, item: Item) -> dict:
                                 light_vertices=light_v, env_map=env_map)
             if cfg.shadow_samples > 0:
                 split = split_intersectors(scene)
+        exposure = 1.0
+        if cfg.lighting == "scan" and frame < scan.num_frames and scan.color_paths[frame]:
+            from pipeline.ingest import read_color
+            from pipeline.trace.pbr import Camera
+            from pipeline.trace.photolights import frame_exposure
+
+            exposure = frame_exposure(scene, Camera(K=scan.K[frame], T_c2w=scan.T_c2w[frame], width=scan.width,
+                                                    height=scan.height), read_color(scan, frame),
+                                      radiance_scale=cfg.radiance_scale, threshold=cfg.light_threshold)
         out[f"f{frame:06d}"] = trace_frame(ctx, scene, scene_name, drop, frame, doc, labels,
-                                           room_isect=split[0], obj_isect=split[1])
+                                           room_isect=split[0], obj_isect=split[1], exposure=exposure)
     return {"frames": out}
 
 

@@ -279,7 +279,7 @@ def test_depth_is_real_depth_with_visible_object_depth_even_when_real_depth_is_m
 # Stage
 # --------------------------------------------------------------------------------------------------
 
-def _make_run(run: Path, *, with_trace: bool = True) -> None:
+def _make_run(run: Path, *, with_trace: bool = True, exposure: float | None = None) -> None:
     """Ingested scan (one frame, photo on disk, no depth), one raster frame and its trace passes."""
     from pipeline import annotate
     from pipeline.ingest import save_scan
@@ -305,8 +305,9 @@ def _make_run(run: Path, *, with_trace: bool = True) -> None:
                                                   "T_c2w": np.eye(4).tolist(), "instances": []})
     atomic_write_json(stem.parent / "f000001.json", {"status": "rejected", "reason": "too small"})
     if with_trace:
+        extra = {} if exposure is None else {"exposure": np.float32(exposure)}
         atomic_save_npz(run / "trace/room/drop0000/f000000.npz", pbr=pbr, ao=np.ones((H, W), np.float32),
-                        coverage=cov, shadow_ratio=sr)
+                        coverage=cov, shadow_ratio=sr, **extra)
 
 
 def _ctx(run: Path, **composite):
@@ -413,3 +414,34 @@ def test_blurred_contact_shadow_has_no_bright_rim_at_the_object():
     near = (dist > 0.5) & (dist < 3.0) & (np.hypot(xx - 40.0, yy - 34.0) < 13.5)   # well inside the ring
     shadowed = int(cl.encode_u8(np.float32(dark)))
     assert near.any() and (np.abs(res.image[near].astype(int) - shadowed) <= 2).all()
+
+
+@pytest.mark.parametrize("exposure", [0.5, float("nan")])
+def test_stage_scales_the_objects_by_the_traced_exposure_in_full_mode_only(tmp_path, exposure):
+    """The trace stage's per-frame exposure multiplies the objects' radiance (full mode, match_exposure);
+    a bad value (NaN) counts as 1, as does a trace output without it."""
+    import cv2
+
+    from pipeline.composite import STAGE
+    from pipeline.export import composite_path
+
+    def run_one(name, **kw):
+        run = tmp_path / name
+        _make_run(run, exposure=kw.pop("exposure", None))
+        ctx = _ctx(run, blur_sigma=0.0, noise_sigma=0.0, **kw)
+        res = STAGE.run_item(ctx, STAGE.plan(ctx)[0])
+        img = cv2.imread(str(composite_path(run, "room", 0, 0)), cv2.IMREAD_COLOR).astype(float)
+        return res, img
+
+    _, _, labels, _ = _frame()
+    inner = labels > 0
+    res_none, none = run_one("none")
+    res_e, with_e = run_one("e", exposure=exposure)
+    _, off = run_one("off", exposure=exposure, match_exposure=False)
+    _, pub = run_one("pub", exposure=exposure, mode="published")
+    _, pub_none = run_one("pub_none", mode="published")
+    assert np.array_equal(off, none) and np.array_equal(pub, pub_none)
+    if np.isnan(exposure):
+        assert res_e["exposure"] == 1.0 and np.array_equal(with_e, none)
+    else:
+        assert res_e["exposure"] == 0.5 and with_e[inner].mean() < 0.85 * none[inner].mean()

@@ -528,3 +528,19 @@ def test_photo_lighting_of_black_and_saturated_photos_is_finite(level):
                      up=np.array([0.0, 0.0, 1.0]))
     fb = render(sc, camera(), np.ones((36, 48), bool), RenderSettings(spp=2, spp_min=2), np.random.default_rng(0))
     assert np.isfinite(fb.pbr).all()
+
+
+def test_frame_exposure_is_one_for_too_few_room_pixels_and_clamped():
+    from pipeline.trace.photolights import EXPOSURE_RANGE, frame_exposure
+
+    rv, rf = box_room((-2, -3, -2), (2, 3, 2), n=4)
+    col = np.full((len(rv), 3), 128, np.uint8)
+    sc = build_scene(rv, rf, col, [])
+    cam = camera(w=48, h=36)
+    assert frame_exposure(sc, cam, np.full((36, 48, 3), 128, np.uint8)) == pytest.approx(1.0, rel=1e-5)
+    assert frame_exposure(sc, cam, np.full((36, 48, 3), 255, np.uint8)) == 1.0   # all clipped: unmeasurable
+    assert frame_exposure(sc, cam, np.full((36, 48, 3), 6, np.uint8)) == 1.0     # near black: unmeasurable
+    dim = build_scene(rv, rf, np.full((len(rv), 3), 50, np.uint8), [])   # mesh far darker than the photo
+    assert frame_exposure(dim, cam, np.full((36, 48, 3), 240, np.uint8)) == EXPOSURE_RANGE[1]
+    assert frame_exposure(sc, cam, np.full((10, 10, 3), 128, np.uint8)) == 1.0   # not the camera's size
+    assert frame_exposure(build_scene(*EMPTY, [sphere_object()]), cam, np.full((36, 48, 3), 128, np.uint8)) == 1.0

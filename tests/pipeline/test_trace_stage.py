@@ -215,7 +215,8 @@ def test_stage_writes_every_pass_with_the_agreed_names_and_is_deterministic(tmp_
     res = STAGE.run_item(ctx, items[0])["frames"]["f000000"]
     out = output_path(run, "room", 0, 0)
     a = load_npz(out)
-    assert set(a) == {"pbr", "ao", "coverage", "shadow_ratio", "albedo", "normal", "spp"}
+    assert set(a) == {"pbr", "ao", "coverage", "shadow_ratio", "albedo", "normal", "spp", "exposure"}
+    assert a["exposure"] == 1.0   # no photo: the mesh's own exposure
     labels = load_npz(run / "raster/room/drop0000/f000000.npz")["labels"]
     H, W = labels.shape
     assert a["pbr"].shape == (H, W, 3) and a["pbr"].dtype == np.float32
@@ -316,3 +317,19 @@ def test_photo_lighting_lights_what_the_photos_see_clipped_and_is_off_with_zero_
     assert out["grey"] == out["none"]
     # every surface the photo saw is clipped: those become lights and the object gets brighter
     assert out["clipped_pbr"] > 1.5 * out["none_pbr"]
+
+
+@pytest.mark.parametrize("level,want", [(180, 1.0), (104, 0.3033)])
+def test_stage_measures_the_photos_exposure_against_the_mesh_colours(tmp_path, level, want):
+    """Room mesh colour 180 everywhere but the clipped ceiling: a uniform photo of 180 is the mesh's exposure;
+    one of 104 is darker by linear(104) / linear(180)."""
+    from pipeline.trace.lights import srgb_to_linear
+    from pipeline.trace.stage import STAGE, output_path
+
+    run = tmp_path / "run"
+    _make_run(run, photo_level=level)
+    ctx = _ctx(run, spp=4, shadow_samples=0)
+    STAGE.run_item(ctx, STAGE.plan(ctx)[0])
+    exp = float(load_npz(output_path(run, "room", 0, 0))["exposure"])
+    ratio = float(srgb_to_linear(np.uint8(level)) / srgb_to_linear(np.uint8(180)))
+    assert ratio == pytest.approx(want, abs=1e-3) and exp == pytest.approx(ratio, rel=1e-4)
