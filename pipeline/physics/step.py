@@ -38,7 +38,12 @@ def external(model: Model, state: State, active: np.ndarray) -> tuple[np.ndarray
 
 
 def step(model: Model, state: State) -> State:
-    """Advance ``state`` by ``model.opt.timestep`` seconds."""
+    """Advance ``state`` by ``model.opt.timestep`` seconds.
+
+    Loops of steps should run under :func:`pipeline.physics.drop.one_blas_thread` (as
+    :func:`~pipeline.physics.drop.run` does): the solver's products are small and a threaded BLAS makes
+    them many times slower on a busy machine.
+    """
     asleep = wake(model, state.pos, state.vel, state.angvel, state.asleep)
     state = state.replace(asleep=asleep, rest_time=np.where(state.asleep & ~asleep, 0.0, state.rest_time))
     active = ~asleep

@@ -23,6 +23,15 @@ FLOOR = np.array([[0.0, 0.0, 1.0, 0.0]])
 NO_SLEEP = Options(sleep_time=1e9)
 
 
+@pytest.fixture(autouse=True)
+def _one_blas_thread():
+    # the tests step directly; drop.run does this itself (threaded BLAS on small matrices is slow)
+    from pipeline.physics.drop import one_blas_thread
+
+    with one_blas_thread():
+        yield
+
+
 def _run(model, state, seconds):
     for _ in range(int(round(seconds / model.opt.timestep))):
         state = step(model, state)
