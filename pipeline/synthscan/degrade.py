@@ -64,6 +64,7 @@ class CameraModel:
     of the same view with objects inserted (:func:`camera_photo`), so that a compositor benchmark sees
     a camera whose blur and noise the compositor has to measure from the photo and match.
 
+    exposure : multiplies the linear image before everything else (a frame's automatic exposure)
     blur_sigma : Gaussian PSF sigma, pixels (lens softness, slight defocus); 0 = none
     defocus_radius : disk PSF radius, pixels (thin-lens defocus), applied after the Gaussian; 0 = none
     read_noise, shot_noise : as :func:`encode_photo` (linear units; shot noise at 1.0)
@@ -71,11 +72,12 @@ class CameraModel:
 
     blur_sigma: float = 0.0
     defocus_radius: float = 0.0
+    exposure: float = 1.0
     read_noise: float = 0.004
     shot_noise: float = 0.012
 
     def to_dict(self) -> dict:
-        return {"blur_sigma": self.blur_sigma, "defocus_radius": self.defocus_radius,
+        return {"blur_sigma": self.blur_sigma, "defocus_radius": self.defocus_radius, "exposure": self.exposure,
                 "read_noise": self.read_noise, "shot_noise": self.shot_noise}
 
 
@@ -108,8 +110,10 @@ def camera_photo(linear: np.ndarray, camera: CameraModel | None, rng: np.random.
     """
     if camera is None:
         return encode_photo(linear, rng)
-    return encode_photo(camera_psf(linear, camera), rng, read_noise=camera.read_noise,
-                        shot_noise=camera.shot_noise)
+    lin = np.asarray(linear, np.float32)
+    if camera.exposure != 1.0:
+        lin = lin * np.float32(camera.exposure)
+    return encode_photo(camera_psf(lin, camera), rng, read_noise=camera.read_noise, shot_noise=camera.shot_noise)
 
 
 def disk_kernel(radius: float) -> np.ndarray:

@@ -220,6 +220,15 @@ def test_camera_psf_keeps_energy_and_blurs_a_step_by_its_sigma(sigma):
     assert np.sqrt((g * (x - mu) ** 2).sum() / g.sum()) == pytest.approx(sigma, rel=0.05)
 
 
+def test_camera_exposure_scales_the_linear_image_before_the_sensor():
+    from pipeline.synthscan.degrade import CameraModel, camera_photo
+
+    x = np.random.default_rng(0).uniform(0, 0.45, (20, 30, 3)).astype(np.float32)
+    a = camera_photo(x, CameraModel(exposure=2.0, blur_sigma=0.7), np.random.default_rng(3))
+    b = camera_photo(x * 2.0, CameraModel(blur_sigma=0.7), np.random.default_rng(3))
+    assert np.array_equal(a, b)
+
+
 def test_camera_model_is_for_traced_photos_only(tmp_path):
     from pipeline.synthscan import make_scan
     from pipeline.synthscan.degrade import CameraModel
