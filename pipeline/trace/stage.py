@@ -1,7 +1,9 @@
 """The ``trace`` stage: AO, PBR, shadow-ratio, albedo and normal passes of every rastered frame.
 
-Items are drops, ``<scene>/drop<NNNN>``: the Embree scene (room + placed objects) is built once per
-drop and every accepted raster frame of the drop is traced with it. Each frame's generator is derived
+Items are chunks of a drop's frames, ``<scene>/drop<NNNN>/f<first>-f<last>`` (``trace.frames_per_item``):
+the Embree scene (room + placed objects) is built once per item and each of its frames is traced with
+it. What does not change between items of a scene (the room mesh and its photo-based lighting) is kept
+per worker process (:func:`_room`). Each frame's generator is derived
 from the run seed and the frame's own key, so outputs do not depend on how frames are grouped. An item
 reads the raster frames (``labels`` and the JSON's camera and per-instance ``obj_id``, ``R_m2c``,
 ``t_m2c``), the ingested scan and object library, and the room mesh at the level of detail prep chose
@@ -21,6 +23,7 @@ for tracing (``RUN/prep/<scene>/room_trace.ply``, else the ingest room mesh). It
 
 from __future__ import annotations
 
+import functools
 import logging
 from pathlib import Path
 
@@ -143,9 +146,37 @@ def trace_frame(ctx: StageContext, scene, scene_name: str, drop: int, frame: int
             "shadow_px": int((sr != 1.0).sum())}
 
 
+def _stamp(path: Path) -> tuple[str, int, int]:
+    st = path.stat()
+    return str(path), st.st_mtime_ns, st.st_size
+
+
+@functools.lru_cache(maxsize=2)
+def _room(run_dir: str, scene_name: str, cfg: TraceConfig, seed: int, stamps: tuple) -> tuple:
+    """``(scan, room vertices, faces, colours, light_vertices, env_map)`` of a scene, read-only arrays.
+
+    Kept per worker process for the next item of the same scene (the photo-based lighting alone costs
+    ~0.7 CPU s per item on 7-Scenes); ``stamps`` (path, mtime, size of scan.json and the room mesh)
+    make a changed file a new entry.
+    """
+    from pipeline.ingest import load_scan
+    from pipeline.scanformats.mesh import read_room_ply
+
+    scan = load_scan(run_dir, scene_name)
+    rv, rf, rc = read_room_ply(room_mesh_path(Path(run_dir), scan, cfg.room_mesh))
+    light_v = env_map = None
+    if cfg.lighting == "scan" and cfg.photo_frames > 0:   # per scan, not per item: same result in every chunk
+        from pipeline.trace.photolights import scan_lighting
+
+        light_v, env_map = scan_lighting(scan, rv, rf, rc, cfg, seed)
+    for a in (rv, rf, rc, light_v, env_map):
+        if isinstance(a, np.ndarray):
+            a.setflags(write=False)
+    return scan, rv, rf, rc, light_v, env_map
+
+
 def run_item(ctx: StageContext, item: Item) -> dict:
     from pipeline.ingest import load_objects, load_scan
-    from pipeline.scanformats.mesh import read_room_ply
     from pipeline.trace.scene import build_scene
     from pipeline.trace.shadow import split_intersectors
 
@@ -154,14 +185,12 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     frames = [int(f) for f in item.data["frames"]]
     raster_dir = ctx.run_dir / "raster" / scene_name / f"drop{drop:04d}"
     scan = load_scan(ctx.run_dir, scene_name)
+    stamps = tuple(_stamp(p) for p in (ctx.run_dir / "ingest" / scene_name / "scan.json",
+                                       ctx.run_dir / "ingest" / scene_name / "frames.npz",
+                                       Path(room_mesh_path(ctx.run_dir, scan, cfg.room_mesh))) if p.is_file())
+    scan, rv, rf, rc, light_v, env_map = _room(str(ctx.run_dir), scene_name, cfg, ctx.cfg.run.seed, stamps)
     library = {o.obj_id: o for o in load_objects(ctx.run_dir)}
-    rv, rf, rc = read_room_ply(room_mesh_path(ctx.run_dir, scan, cfg.room_mesh))
     env = None if cfg.env_radiance < 0 else np.full(3, cfg.env_radiance, np.float32)
-    light_v = env_map = None
-    if cfg.lighting == "scan" and cfg.photo_frames > 0:   # per scan, not per item: same result in every chunk
-        from pipeline.trace.photolights import scan_lighting
-
-        light_v, env_map = scan_lighting(scan, rv, rf, rc, cfg, ctx.cfg.run.seed)
     scene = None
     split = (None, None)
     out = {}
