@@ -37,7 +37,7 @@ class Options:
     # keeps impacts inelastic without a rebound through the surface (b dt and R cancel exactly)
     impratio: float = 10.0           # friction rows are impratio x harder than normal rows
     rolling: float = 0.002           # m, rolling/torsional resistance length (0 = off)
-    iterations: int = 200            # solver iterations per step (upper bound)
+    iterations: int = 100            # solver iterations per step (upper bound; resting contacts need none)
     tolerance: float = 1e-5          # m/s: solver stops when no body's velocity (any point within its
     #                                  bounding sphere) changes by more than this in an iteration
     margin: float = 0.005            # contact detection distance beyond speculative margins, m
