@@ -35,9 +35,10 @@ class DropSettings:
     max_speed: float = 1.0                 # m/s, largest random initial speed
     max_spin: float = 6.0                  # rad/s, largest random initial spin
     max_penetration: float = 0.002         # m, deeper final penetration rejects the drop
-    room_thickness: float = 0.005          # m, half-thickness of the scan surface shell (objects rest this
-    #                                        far above the scanned surface; exact room contacts and CCD
-    #                                        need the room mesh for a shell this thin, see ccd.py)
+    room_thickness: float = 0.01           # m, half-thickness of the scan surface shell (objects rest this
+    #                                        far above the scanned surface). 5 mm measured worse on the
+    #                                        7-Scenes room (bench/physics.py: more bodies wedged in scan
+    #                                        clutter); thinner shells need the room mesh (exact CCD)
     friction: float = 0.5                  # Coulomb coefficient
     spawn_tries: int = 200                 # samples per body before giving up
     floor_plane: bool = True               # a static plane at the scan's floor catches bodies that fall
