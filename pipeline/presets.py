@@ -16,6 +16,6 @@ PRESETS: dict[str, dict[str, dict]] = {
     # Reference-like quality: more samples, deeper paths, lower noise target.
     "high": {
         "trace": {"spp": 64, "spp_min": 16, "max_depth": 5, "noise_target": 0.01, "ao_samples": 4,
-                  "shadow_samples": 64, "photo_frames": 64},
+                  "shadow_samples": 64, "shadow_min_effect": 0.01, "photo_frames": 64},
     },
 }
