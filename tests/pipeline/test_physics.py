@@ -205,6 +205,28 @@ def test_solve_resting_box_carries_its_weight():
     assert np.linalg.norm(res.vel) < 1e-3     # m/s, far below the sleep threshold
 
 
+def test_direct_solve_at_rest_matches_the_iterations():
+    # a resting stack: the active-set solve from the warm start is exact (no iteration) and gives the
+    # velocities the projected-gradient iterations converge to from zero
+    from pipeline.physics.step import warm_start
+
+    m = build_model([box_body([0.05] * 3, 1.0)] * 3, planes=FLOOR, opt=NO_SLEEP)
+    s = make_state(m, np.repeat(np.eye(3)[None], 3, 0), [[0, 0, 0.05], [0, 0, 0.15], [0, 0, 0.25]])
+    s = _run(m, s, 1.0)
+    active = np.ones(3, bool)
+    v, w = external(m, s, active)
+    c = collide(m, s)
+    direct = solve_contacts(m, s, c, v, w, active, warm_start(s, c))
+    assert direct.iterations == 0
+    slow = dataclasses.replace(m, opt=dataclasses.replace(m.opt, iterations=5000, tolerance=1e-9))
+    it = solve_contacts(slow, s, c, v, w, active, None)
+    assert it.iterations > 10
+    np.testing.assert_allclose(direct.vel, it.vel, atol=1e-6)
+    np.testing.assert_allclose(direct.angvel, it.angvel, atol=1e-5)
+    assert np.all(direct.impulse[:, 0] >= 0)
+    assert np.all(np.linalg.norm(direct.impulse[:, 1:], axis=1) <= c.friction * direct.impulse[:, 0] + 1e-12)
+
+
 # --- whole scenes (the analytic list) ------------------------------------------------------
 
 def test_box_dropped_on_plane_rests_face_down_at_its_height():

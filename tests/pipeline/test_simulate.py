@@ -89,3 +89,32 @@ def test_distinct_objects_are_distinct():
                     rng=np.random.default_rng(0))
     assert sorted(p.obj_ids.tolist()) == [1, 5, 9]
     assert p.verdict == "rejected:never-settled"   # 0.1 s is too short to land: counted, not kept
+
+
+def test_room_info_given_or_computed_gives_the_same_drop():
+    from pipeline.physics.drop import room_info
+
+    cfg = SimulateConfig(objects_per_drop=3, p_velocity=0.5)
+    room, up = _room(), np.array([0, 0, 1.0])
+    a, _ = simulate(cfg, scene="s", drop=0, room=room, up=up, proxies=PROXIES, rng=np.random.default_rng(3))
+    b, _ = simulate(cfg, scene="s", drop=0, room=room, up=up, proxies=PROXIES, rng=np.random.default_rng(3),
+                    info=room_info(room, up))
+    assert np.array_equal(a.t_m2w, b.t_m2w) and np.array_equal(a.R_m2w, b.R_m2w) and a.verdict == b.verdict
+
+
+def test_room_cache_reloads_a_rewritten_proxy(tmp_path):
+    import os
+
+    from pipeline.io import atomic_save_npz
+    from pipeline.simulate import _cached_room, _stamp
+
+    path = tmp_path / "room_proxy.npz"
+    atomic_save_npz(path, **_room())
+    up = (0.0, 0.0, 1.0)
+    r1, i1 = _cached_room(_stamp(path), up)
+    assert _cached_room(_stamp(path), up)[0] is r1           # same file: built once per process
+    atomic_save_npz(path, **_room(size=1.2))
+    os.utime(path, ns=(1, 1))                                 # a different stamp even within one mtime tick
+    r2, i2 = _cached_room(_stamp(path), up)
+    assert r2 is not r1 and r2["udf"].shape != r1["udf"].shape
+    assert np.max(i2.hi - i2.lo) < np.max(i1.hi - i1.lo)
