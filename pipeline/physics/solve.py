@@ -6,7 +6,11 @@ the step and ``r`` the signed distance, MuJoCo's reference acceleration is
 ``solref = (tc, zeta)`` and the impedance ``d(r)`` from ``solimp`` (MuJoCo's sigmoid, mid 0.5, power 2).
 Softness enters as the regulariser ``R = (1 - d) / d * A_ii`` (friction rows ``R / impratio``). In
 impulse form (impulse ``p = f dt``) each active row satisfies ``J v+ + R p = u + dt aref``.
-Speculative contacts (``r > 0``) are hard: ``J_n v+ >= -r / dt`` (arrive, never cross).
+Speculative contacts (``r > 0``) are hard: ``J_n v+ >= -r / dt`` (arrive, never cross). With the default
+``tc = 2 dt`` (``b dt = 1``) a body that reaches a surface therefore stops on it within a step, where
+MuJoCo's continuous dynamics let it sink ~``v tc / e`` and spring back; ``Options.soft_impact`` follows
+those (soft from arrival, implicit reference acceleration: :func:`_soft_impact_rows`). It is off by default:
+against thin scan surfaces the sinking wedges bodies (see bench/results/physics.json's notes).
 
 The resulting cone-constrained problem ``min 1/2 p^T (A + R) p - p^T c`` with ``p_n >= 0`` and
 ``|p_t| <= mu p_n`` (elliptic cone) is solved in two ways, both vectorised over contacts:
@@ -163,9 +167,13 @@ def solve_contacts(model: Model, state: State, contacts: Contacts, vel_free: np.
     Rn = (1 - dimp) / dimp * Ann
     soft = r <= 0
     target = np.empty((K, 3))
-    target[:, 0] = np.where(soft, u[:, 0] + dt * (-bb * u[:, 0] - kk * dimp * r), -r / dt)
+    if opt.soft_impact:
+        target[:, 0], soft, Rn_n = _soft_impact_rows(u[:, 0], r, dimp, Rn, dt, bb, kk)
+    else:
+        target[:, 0] = np.where(soft, u[:, 0] + dt * (-bb * u[:, 0] - kk * dimp * r), -r / dt)
+        Rn_n = Rn
     target[:, 1:] = u[:, 1:] * max(0.0, 1 - bb * dt)   # never reverse the slip (energy)
-    Rrow = np.stack([np.where(soft, Rn, 1e-9 * Ann), Rn / opt.impratio, Rn / opt.impratio], axis=1)
+    Rrow = np.stack([np.where(soft, Rn_n, 1e-9 * Ann), Rn / opt.impratio, Rn / opt.impratio], axis=1)
     Rv = Rrow.reshape(-1)
     c = (target - uf).reshape(-1)
     mu = contacts.friction[ci]
@@ -258,6 +266,38 @@ def solve_contacts(model: Model, state: State, contacts: Contacts, vel_free: np.
     angvel[bodies] += dv[:, 3:]
     imp[ci] = p.reshape(K, 3)
     return SolveResult(vel, angvel, imp, it, res)
+
+
+def _soft_impact_rows(u: np.ndarray, r: np.ndarray, dimp: np.ndarray, Rn: np.ndarray, dt: float, bb: float,
+                      kk: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Normal rows for ``Options.soft_impact``: MuJoCo's continuous soft contact through the impact.
+
+    A speculative contact that the body reaches within the step (``0 < r < -u dt``) is soft from the
+    moment ``ts = r / -u`` it arrives (MuJoCo, with a short step, sees it penetrate and lets the spring
+    act), not a hard "arrive, never cross" row. Soft rows take the reference acceleration implicitly over
+    their time in contact ``tau`` (``dt``, or ``dt - ts`` on arrival): ``aref = -b v+ - k d (r + tau v+)``,
+    so ``J v+ + R/s p = (u - tau k d r) / s`` with ``s = 1 + tau b + tau^2 k d``. The explicit form with
+    ``b dt = 1`` (``tc = 2 dt``, the default) stops the body in one step; the implicit one lets it sink
+    and spring back over ~``tc`` as MuJoCo's continuous dynamics do.
+
+    Parameters
+    ----------
+    u, r, dimp, Rn
+        (K,) normal velocity at the start of the step (m/s), signed distance (m), impedance, regulariser.
+    dt, bb, kk
+        Step (s) and MuJoCo's damping (1/s) and stiffness (1/s^2).
+
+    Returns ``(target (K,) m/s, soft (K,) bool, R (K,))``.
+    """
+    soft = r <= 0
+    with np.errstate(divide="ignore"):
+        ts = np.where(u < 0, r / np.maximum(-u, 1e-300), np.inf)
+    arrive = ~soft & (ts < dt)
+    tau = np.where(arrive, dt - ts, dt)
+    soft = soft | arrive
+    s = 1 + tau * bb + tau * tau * kk * dimp
+    target = np.where(soft, (u - tau * kk * dimp * np.minimum(r, 0.0)) / s, -r / dt)
+    return target, soft, np.where(soft, Rn / s, Rn)
 
 
 def _active_set_solve(p0: np.ndarray, hmul, c: np.ndarray, mu: np.ndarray, Jf: np.ndarray, Wf: np.ndarray,

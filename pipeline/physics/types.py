@@ -36,6 +36,9 @@ class Options:
     solimp: tuple[float, float, float] = (0.99, 0.99, 0.001)  # (dmin, dmax, width m); dmin = dmax
     # keeps impacts inelastic without a rebound through the surface (b dt and R cancel exactly)
     impratio: float = 10.0           # friction rows are impratio x harder than normal rows
+    soft_impact: bool = False        # MuJoCo's continuous soft impact: bodies sink ~v tc / e into what
+    #                                  they hit and spring back (the MuJoCo comparison); off: a body
+    #                                  reaching a surface stops on it in one step (scan sheets, piles)
     rolling: float = 0.002           # m, rolling/torsional resistance length (0 = off)
     iterations: int = 100            # solver iterations per step (upper bound; resting contacts need none)
     tolerance: float = 1e-5          # m/s: solver stops when no body's velocity (any point within its
