@@ -118,9 +118,10 @@ def _errors(R_a, t_a, R_b, t_b) -> tuple[list[float], list[float]]:
             list(np.degrees([Rotation.from_matrix(a.T @ b).magnitude() for a, b in zip(R_a, R_b)])))
 
 
-def plane_vs_mujoco(timesteps: list[float], gap: float | None) -> dict:
+def plane_vs_mujoco(timesteps: list[float], gap: float | None, soft_timesteps: tuple[float, ...] = ()) -> dict:
     """Rest poses of the plane scenes (:func:`_plane_scenes`) against MuJoCo at its 2 ms step, for our
-    engine at ``timesteps`` and for MuJoCo itself at 10 and 20 ms (its own timestep error)."""
+    engine at ``timesteps`` (default options) and ``soft_timesteps`` (``Options.soft_impact``; keys
+    ``"<dt> soft_impact"``), and for MuJoCo itself at 10 and 20 ms (its own timestep error)."""
     import mujoco  # noqa: F401  (fails loudly: the benchmark needs it)
 
     from pipeline.physics import Options, build_model, make_state
@@ -146,10 +147,10 @@ def plane_vs_mujoco(timesteps: list[float], gap: float | None) -> dict:
             walls.append(wall)
         out["mujoco"][str(dt)] = {"seconds": walls, "max_pos_err_m": float(np.max(pe)),
                                   "median_pos_err_m": float(np.median(pe)), "max_ang_err_deg": float(np.max(ae))}
-    for dt in timesteps:
+    for dt, soft in [(dt, False) for dt in timesteps] + [(dt, True) for dt in soft_timesteps]:
         secs, pe, ae, pens = [], [], [], []
         for (bodies, boxes, R, t), (R_ref, t_ref) in zip(_plane_scenes(gap), refs):
-            m = build_model(bodies, planes=[[0, 0, 1.0, 0]], opt=Options(timestep=dt))
+            m = build_model(bodies, planes=[[0, 0, 1.0, 0]], opt=Options(timestep=dt, soft_impact=soft))
             s = make_state(m, R, t)
             t0 = time.process_time()
             r = run(m, s, DropSettings(timestep=dt, max_time=10.0))
@@ -158,7 +159,7 @@ def plane_vs_mujoco(timesteps: list[float], gap: float | None) -> dict:
             pe += a
             ae += b
             pens.append(r.max_penetration)
-        out["ours"][str(dt)] = {"seconds": secs, "max_pos_err_m": float(np.max(pe)),
+        out["ours"][f"{dt} soft_impact" if soft else str(dt)] = {"seconds": secs, "max_pos_err_m": float(np.max(pe)),
                                 "median_pos_err_m": float(np.median(pe)), "max_ang_err_deg": float(np.max(ae)),
                                 "max_penetration_m": float(np.max(pens))}
     return out
@@ -236,11 +237,16 @@ def _chart(res: BenchResult | None, room_runs: dict, baseline: dict, pv: dict, p
     a1.grid(alpha=0.3)
     a1.legend(fontsize=7, loc="center right")
     for name, d in pv.items():
-        pts = sorted((float(np.median(r["seconds"])), 1e3 * r["max_pos_err_m"], dt, r["max_ang_err_deg"])
-                     for dt, r in d["ours"].items())
-        a2.plot([p[0] for p in pts], [p[1] for p in pts], "o-", label=f"ours, {name}")
-        for x, y, dt, ang in pts:
-            a2.annotate(f"dt {dt}, {ang:.2f} deg", (x, y), fontsize=7, textcoords="offset points", xytext=(3, 3))
+        for soft in (False, True):
+            pts = sorted((float(np.median(r["seconds"])), 1e3 * r["max_pos_err_m"], dt, r["max_ang_err_deg"])
+                         for dt, r in d["ours"].items() if dt.endswith("soft_impact") == soft)
+            if not pts:
+                continue
+            a2.plot([p[0] for p in pts], [p[1] for p in pts], "s--" if soft else "o-",
+                    label=f"ours{', soft_impact' if soft else ''}, {name}")
+            for x, y, dt, ang in pts:
+                a2.annotate(f"dt {dt.split()[0]}, {ang:.2f} deg", (x, y), fontsize=7, textcoords="offset points",
+                            xytext=(3, 3))
         mj = sorted((float(np.median(r["seconds"])), 1e3 * r["max_pos_err_m"], dt)
                     for dt, r in d["mujoco"].items() if "max_pos_err_m" in r)
         a2.plot([p[0] for p in mj], [p[1] for p in mj], "x:", label=f"MuJoCo at its own dt, {name}")
@@ -310,11 +316,12 @@ def main(argv: list[str] | None = None) -> int:
         r = room_drops(room, up, bodies, args.sweep_drops, args.objects, dt, info=info)
         runs[str(dt)] = r
         res.figures[f"redkitchen_lmo_dt{dt}"] = keep(r)
-    pv = {"dropped 8 cm": plane_vs_mujoco([0.005, 0.01, 0.02], None),
-          "released 2 mm above": plane_vs_mujoco([0.005, 0.01, 0.02], 0.002)}
+    pv = {"dropped 8 cm": plane_vs_mujoco([0.005, 0.01, 0.02], None, (0.01, 0.02)),
+          "released 2 mm above": plane_vs_mujoco([0.005, 0.01, 0.02], 0.002, (0.01, 0.02))}
     for name, d in pv.items():
         for dt, r in d["ours"].items():
-            res.add_point(f"plane scenes {name}: max rest error vs MuJoCo (mm)",
+            res.add_point(f"plane scenes {name}{' (soft_impact)' if 'soft' in dt else ''}: max rest error vs "
+                          "MuJoCo (mm)",
                           speed=float(np.median(r["seconds"])), accuracy=1e3 * r["max_pos_err_m"],
                           label=f"dt {dt}, {r['max_ang_err_deg']:.2f} deg")
         res.add_point(f"MuJoCo, plane scenes {name} (3 s at 2 ms)",
@@ -360,7 +367,13 @@ def main(argv: list[str] | None = None) -> int:
         "lets the body sink ~1 cm and spring back over ~40 ms; ours stops it at the surface within one step "
         "with speculative contacts), so MuJoCo at its own 10/20 ms steps is listed against its 2 ms result "
         "too. 'released 2 mm above': lowest point 2 mm above the plane, so the rest pose is set by the contact "
-        "model (penetration, contact points, friction).")
+        "model (penetration, contact points, friction). '<dt> soft_impact': Options.soft_impact (off by "
+        "default): a contact the body reaches within a step is soft from its arrival and the reference "
+        "acceleration is taken implicitly (MuJoCo's continuous dynamics: the body sinks and springs back); "
+        "the explicit form with b dt = 1 at tc = 2 dt stops it in one step. Not the simulate default: on 60 "
+        "redkitchen drops (dt 0.02) soft impacts everywhere gave 87 % accepted (5 penetration, 2 left-room "
+        "rejections; bodies sink into thin scan surfaces and wedge), soft only against planes and bodies "
+        "(scan sheets hard) 90 %, against 95-96 % with the default.")
     res.figures["load_average_start_end"] = [load0, [round(x, 2) for x in os.getloadavg()]]
     res.write()
     _chart(res, runs, b, pv, Path(__file__).resolve().parent / "results" / "physics.png")
