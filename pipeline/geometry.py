@@ -1,4 +1,4 @@
-"""Small pose helpers shared by the scan generator, the tracer's test shapes and the tests."""
+"""Small pose and frame helpers shared by the scan generator, the tracer and the tests."""
 
 from __future__ import annotations
 
@@ -25,3 +25,17 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0), roll: float = 0.0) -> np.ndarray:
     T = np.eye(4)
     T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
     return T
+
+
+def up_frame(up) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Right-handed orthonormal frame ``(e1, e2, up)`` (each (3,) float64) with ``up`` normalised.
+
+    ``e1`` is horizontal (perpendicular to ``up``), built from the world x axis, or y when ``up`` is
+    close to x; ``e2 = up x e1``. Used for horizontal extents and azimuths about the room's up axis.
+    """
+    up = np.asarray(up, np.float64)
+    up = up / np.linalg.norm(up)
+    a = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(up, a)
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(up, e1), up

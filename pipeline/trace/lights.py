@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.geometry import up_frame
+
 log = logging.getLogger(__name__)
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)  # Rec. 709 luminance weights, linear RGB
@@ -130,12 +132,7 @@ def published_lights(room_vertices: np.ndarray, up: np.ndarray, *, power: float 
     room_vertices : (V, 3) float, metres, world
     up : (3,) unit up vector, world
     """
-    up = np.asarray(up, np.float64)
-    up = up / np.linalg.norm(up)
-    a = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(up, a)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up, e1)
+    e1, e2, up = up_frame(up)
     v = np.asarray(room_vertices, np.float64)
     c = np.stack([v @ e1, v @ e2, v @ up], axis=1)
     lo, hi = c.min(axis=0), c.max(axis=0)

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.geometry import up_frame
 from pipeline.trace.lights import LUMINANCE, srgb_to_linear
 
 log = logging.getLogger(__name__)
@@ -52,12 +53,7 @@ class PhotoLights:
 
 def env_bin(dirs: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Equirectangular bin (row, col) of unit world directions ``dirs (N, 3)`` about the ``up`` axis."""
-    up = np.asarray(up, np.float64)
-    up = up / np.linalg.norm(up)
-    a = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(up, a)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up, e1)
+    e1, e2, up = up_frame(up)
     d = np.asarray(dirs, np.float64)
     cz = np.clip(d @ up, -1.0, 1.0)
     phi = np.arctan2(d @ e2, d @ e1)
