@@ -22,6 +22,8 @@ import numpy as np
 
 from meshprep.errors import InputError
 
+TMP_MARK = ".tmp-"  # temporary files of the atomic writers: <name>.tmp-<pid>
+
 if TYPE_CHECKING:  # pragma: no cover
     import pymeshlab
 
@@ -170,16 +172,16 @@ def _json_default(o: Any) -> Any:
     raise TypeError(f"cannot write {type(o).__name__} as JSON")
 
 
-def dumps_json(obj: Any) -> str:
+def dumps_json(obj: Any, *, indent: int | None = 2) -> str:
     """Deterministic JSON text (sorted keys, arrays as lists, NaN refused)."""
-    return json.dumps(obj, indent=2, sort_keys=True, default=_json_default, allow_nan=False) + "\n"
+    return json.dumps(obj, indent=indent, sort_keys=True, default=_json_default, allow_nan=False) + "\n"
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
     """Write bytes to ``path`` atomically (temporary file in the same folder, then rename)."""
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(f"{p.name}.tmp-{os.getpid()}")
+    tmp = p.with_name(f"{p.name}{TMP_MARK}{os.getpid()}")
     with open(tmp, "wb") as f:
         f.write(data)
     os.replace(tmp, p)
@@ -191,8 +193,8 @@ def write_json(path: str | Path, obj: Any) -> Path:
     return atomic_write_bytes(path, dumps_json(obj).encode("utf-8"))
 
 
-def save_npz(path: str | Path, arrays: dict[str, np.ndarray]) -> Path:
-    """Save arrays as an NPZ file with fixed zip timestamps (equal arrays, equal bytes), atomically."""
+def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
+    """NPZ file contents with fixed zip timestamps and sorted names: equal arrays give equal bytes."""
     buf = _io.BytesIO()
     with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
         for name in sorted(arrays):
@@ -201,7 +203,12 @@ def save_npz(path: str | Path, arrays: dict[str, np.ndarray]) -> Path:
             info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
             info.compress_type = zipfile.ZIP_DEFLATED
             zf.writestr(info, arr.getvalue())
-    return atomic_write_bytes(path, buf.getvalue())
+    return buf.getvalue()
+
+
+def save_npz(path: str | Path, arrays: dict[str, np.ndarray]) -> Path:
+    """Save arrays as an NPZ file (:func:`npz_bytes`), atomically."""
+    return atomic_write_bytes(path, npz_bytes(arrays))
 
 
 def load_npz(path: str | Path) -> dict[str, np.ndarray]:

@@ -11,42 +11,19 @@ written without timestamps; PNGs without metadata. Same inputs, same bytes.
 
 from __future__ import annotations
 
-import io
 import json
-import os
-import zipfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-TMP_MARK = ".tmp-"
+# One atomic writer, one JSON and one NPZ encoding for the whole project: meshprep's (meshprep is
+# standalone and cannot import these from here; the pipeline can import them from there).
+from meshprep.io import TMP_MARK, atomic_write_bytes, dumps_json, npz_bytes
 
+__all__ = ["TMP_MARK", "atomic_write_bytes", "dumps_json", "npz_bytes", "atomic_write_json", "read_json",
+           "atomic_save_npz", "load_npz", "encode_image", "atomic_write_image", "remove_stale_temps"]
 
-def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (temp file in the same folder + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}{TMP_MARK}{os.getpid()}")
-    with open(tmp, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
-    return path
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"cannot write {type(o).__name__} as JSON")
-
-
-def dumps_json(obj: Any, *, indent: int | None = 2) -> str:
-    """Deterministic JSON text: sorted keys, NumPy arrays as lists, NaN refused."""
-    return json.dumps(obj, indent=indent, sort_keys=True, default=_json_default, allow_nan=False) + "\n"
 
 
 def atomic_write_json(path: str | Path, obj: Any, *, indent: int | None = 2) -> Path:
@@ -57,19 +34,6 @@ def atomic_write_json(path: str | Path, obj: Any, *, indent: int | None = 2) -> 
 def read_json(path: str | Path) -> Any:
     with open(path, encoding="utf-8") as f:
         return json.load(f)
-
-
-def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
-    """Uncompressed-deflate NPZ with fixed zip timestamps, so equal arrays give equal bytes."""
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED) as zf:
-        for name in sorted(arrays):
-            arr_buf = io.BytesIO()
-            np.lib.format.write_array(arr_buf, np.asanyarray(arrays[name]), allow_pickle=False)
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = zipfile.ZIP_DEFLATED
-            zf.writestr(info, arr_buf.getvalue())
-    return buf.getvalue()
 
 
 def atomic_save_npz(path: str | Path, **arrays: np.ndarray) -> Path:
