@@ -14,7 +14,8 @@ and the run ends with exit code 1. Failed items are retried when the run is star
 
 An item that finishes but had to leave out part of its input (a corrupt frame of a scan, an unreadable
 model in an object library) lists each omission, naming the file and the cause, under
-``result[INPUT_PROBLEMS]``. Its outputs are kept (the done marker is written), the problems are reported
+``result[INPUT_PROBLEMS]``. Its outputs are kept (the done marker is written, and the problems also go
+to ``<key>.problems.json`` beside it, so listing them needs no read of every marker); they are reported
 in run.json and on the console by every invocation that covers the stage, and the run exits 1: the
 dataset is complete for what could be read, and the user is told what could not.
 """
@@ -124,6 +125,18 @@ def item_results(run_dir: Path, stage: str) -> dict[str, dict]:
     return out
 
 
+def item_problems(run_dir: Path, stage: str, keys: set[str]) -> dict[str, list[str]]:
+    """Inputs that the finished items among ``keys`` left out (their ``<key>.problems.json``), by key."""
+    root = Path(run_dir) / stage / ITEMS_DIR
+    out = {}
+    if root.is_dir():
+        for p in sorted(root.rglob("*.problems.json")):
+            key = str(p.relative_to(root))[: -len(".problems.json")]
+            if key in keys and is_done(run_dir, stage, key):
+                out[key] = read_json(p)
+    return out
+
+
 def execute_item(run_dir: str, cfg_dict: dict, stage_ref: str, item: Item) -> tuple[str, str | None, float]:
     """Run one item and write its marker; return ``(key, error or None, seconds)``.
 
@@ -151,6 +164,11 @@ def execute_item(run_dir: str, cfg_dict: dict, stage_ref: str, item: Item) -> tu
                                    "traceback": tb, "user_error": False})
         log.debug("item %s/%s failed:\n%s", stage_name, item.key, tb)
         return item.key, f"{type(e).__name__}: {e} (bug; traceback in {failed})", time.perf_counter() - t0
+    problems = _marker(run, stage_name, item.key, "problems")
+    if result.get(INPUT_PROBLEMS):   # beside the done marker, so a run lists them without reading every marker
+        atomic_write_json(problems, [str(p) for p in result[INPUT_PROBLEMS]])
+    else:
+        problems.unlink(missing_ok=True)
     atomic_write_json(_marker(run, stage_name, item.key, "done"), result)
     failed.unlink(missing_ok=True)
     return item.key, None, time.perf_counter() - t0
@@ -277,12 +295,8 @@ def run_stage(run_dir: Path, cfg: Config, stage: Stage,
             _terminate_workers(pool)
             raise
         pool.shutdown(wait=True)
-    results = item_results(run_dir, stage.name) if (stage.finish is not None or report.total) else {}
-    planned = set(keys)
-    for key, res in results.items():
-        if key in planned and isinstance(res, dict) and res.get(INPUT_PROBLEMS):
-            report.problems[key] = [str(p) for p in res[INPUT_PROBLEMS]]
+    report.problems = item_problems(run_dir, stage.name, set(keys))
     if stage.finish is not None:  # also after failures: finish what can be finished
-        stage.finish(ctx, results)
+        stage.finish(ctx, item_results(run_dir, stage.name))
     report.seconds = time.perf_counter() - t0
     return report
