@@ -24,10 +24,9 @@ import numpy as np
 from pipeline.tolerances import TRACE_RAY_EPS_M
 from pipeline.trace import bsdf
 from pipeline.trace.intersect import Hits, offset_origins
-from pipeline.trace.lights import sample_area_lights
-from pipeline.trace.pbr import (Camera, Surface, emission_at, interact, material, primary_rays,
-                                sample_continuation)
-from pipeline.trace.sampling import frame_to_local, local_frame, power_heuristic
+from pipeline.trace.pbr import (Camera, Surface, add_rows, area_light_nee, emission_at, emission_mis_weight,
+                                interact, material, primary_rays, sample_continuation)
+from pipeline.trace.sampling import frame_to_local, local_frame
 from pipeline.trace.scene import TraceScene
 
 log = logging.getLogger(__name__)
@@ -80,42 +79,12 @@ def _direct_and_sample(scene: TraceScene, s: Surface, wo: np.ndarray, beta: np.n
     wo_l = frame_to_local(wo, frame)
     lobes = bsdf.prepare(material(scene, s), wo_l[:, 2])
     L = np.zeros((n, 3), np.float32)
-    al = scene.area_lights
-    if al.count and n:
-        tri, b1, b2, pA = sample_area_lights(al, scene.vertices, scene.faces, u[0].astype(np.float64),
-                                             u[1].astype(np.float64), u[2].astype(np.float64))
-        f = scene.faces[tri]
-        V = scene.vertices
-        b1 = b1.astype(np.float32)[:, None]
-        b2 = b2.astype(np.float32)[:, None]
-        b0 = 1 - b1 - b2
-        lp = b0 * V[f[:, 0]] + b1 * V[f[:, 1]] + b2 * V[f[:, 2]]
-        E = scene.emission
-        Le = b0 * E[f[:, 0]] + b1 * E[f[:, 1]] + b2 * E[f[:, 2]]
-        dvec = lp - s.p
-        dist = np.linalg.norm(dvec, axis=1)
-        wl = dvec / np.maximum(dist, 1e-12)[:, None]
-        cos_l = -_dot(wl, scene.tri_normal[tri])          # > 0: the point sees the emitting side
-        pdf_sa = pA * dist.astype(np.float64) ** 2 / np.maximum(cos_l, 1e-12)
-        fc, pdf_b = bsdf.eval_pdf(lobes, wo_l, frame_to_local(wl, frame))
-        ok = (_dot(wl, s.ng) > 0) & (cos_l > 1e-6) & (fc.max(axis=1) > 0)
-        idx = np.flatnonzero(ok)
-        if idx.size:
-            org = offset_origins(s.p[idx], s.ng[idx], wl[idx], eps)
-            occ = scene.intersector.occluded(org, wl[idx], dist[idx] - 2 * eps)
-            rays[0] += idx.size
-            vis = idx[~occ]
-            w = power_heuristic(pdf_sa[vis], pdf_b[vis])
-            L[vis] += beta[vis] * fc[vis] * Le[vis] * (w / pdf_sa[vis]).astype(np.float32)[:, None]
+    if scene.area_lights.count and n:
+        L, k = area_light_nee(scene, s, lobes, wo_l, frame, beta, u[0].astype(np.float64), u[1].astype(np.float64),
+                              u[2].astype(np.float64), eps, one_sided=True)
+        rays[0] += k
     wi, weight, pdf = sample_continuation(lobes, wo_l, frame, s.ng, u[3], u[4], u[5])
     return L, wi, weight, pdf
-
-
-def _add_rows(acc: np.ndarray, rows: np.ndarray, vals: np.ndarray) -> None:
-    if rows.size == 0:
-        return
-    for c in range(acc.shape[1]):
-        acc[:, c] += np.bincount(rows, weights=vals[:, c], minlength=acc.shape[0])
 
 
 def _trace_chunk(scene: TraceScene, camera: Camera, pixels: np.ndarray, settings: FullFrameSettings,
@@ -142,26 +111,25 @@ def _trace_chunk(scene: TraceScene, camera: Camera, pixels: np.ndarray, settings
         covered[hit] = scene.tri_inst[h.prim[hit]] >= cover_from
     miss = np.flatnonzero(~hit)
     if miss.size:
-        _add_rows(L, miss, np.broadcast_to(scene.env_radiance, (miss.size, 3)))
+        add_rows(L, miss, np.broadcast_to(scene.env_radiance, (miss.size, 3)))
     idx = np.flatnonzero(hit)
     if idx.size == 0:
         return L, covered, alb0, nrm0
     em = idx[scene.tri_emits[h.prim[idx]]]
     if em.size:
-        _add_rows(L, em, _front_emission(scene, h.prim[em], h.u[em], h.v[em], d[em]))
+        add_rows(L, em, _front_emission(scene, h.prim[em], h.u[em], h.v[em], d[em]))
     idx = idx[scene.tri_scatters[h.prim[idx]]]
     s = interact(scene, Hits(t=h.t[idx], prim=h.prim[idx], u=h.u[idx], v=h.v[idx]), d[idx])
     alb0[idx] = s.albedo
     nrm0[idx] = s.ns
     wo = -d[idx]
     beta = np.ones((idx.size, 3), np.float32)
-    al = scene.area_lights
     for depth in range(settings.max_depth):
         U = rng.random((7, n), dtype=np.float32)
         if idx.size == 0:
             continue  # keep drawing: the stream position must not depend on the scene
         Ld, wi, weight, pdf = _direct_and_sample(scene, s, wo, beta, U[:6, idx], eps, rays)
-        _add_rows(L, idx, Ld)
+        add_rows(L, idx, Ld)
         if depth + 1 >= settings.max_depth:
             continue
         beta = beta * weight
@@ -177,20 +145,15 @@ def _trace_chunk(scene: TraceScene, camera: Camera, pixels: np.ndarray, settings
         rays[0] += k.size
         m = np.flatnonzero(~h.hit)
         if m.size:
-            _add_rows(L, idx[m], beta[m] * scene.env_radiance)
+            add_rows(L, idx[m], beta[m] * scene.env_radiance)
         hk = np.flatnonzero(h.hit)
         prim = h.prim[hk]
         em = hk[scene.tri_emits[prim]]
         if em.size:
             pe = h.prim[em]
             Le = _front_emission(scene, pe, h.u[em], h.v[em], wi[em])
-            w = np.ones(em.size, np.float32)
-            if al.count:
-                pt = al.prob_of_tri[pe]
-                cos_l = np.abs(_dot(scene.tri_normal[pe], wi[em]))
-                pdf_l = pt * h.t[em].astype(np.float64) ** 2 / np.maximum(cos_l, 1e-12)
-                w = np.where(pt > 0, power_heuristic(pdf[em], pdf_l), 1.0).astype(np.float32)
-            _add_rows(L, idx[em], beta[em] * Le * w[:, None])
+            w = emission_mis_weight(scene, pe, h.t[em], wi[em], pdf[em])
+            add_rows(L, idx[em], beta[em] * Le * w[:, None])
         sc = hk[scene.tri_scatters[prim]]
         idx, beta, wi = idx[sc], beta[sc], wi[sc]
         s = interact(scene, Hits(t=h.t[sc], prim=h.prim[sc], u=h.u[sc], v=h.v[sc]), wi)
@@ -232,9 +195,9 @@ def render_full_frame(scene: TraceScene, camera: Camera, settings: FullFrameSett
         sid = np.arange(start, min(total, start + chunk), dtype=np.int64)
         pix = flat[sid % (H * W)]
         Lc, cc, ac, nc = _trace_chunk(scene, camera, pix, settings, rng, cover_from, rays)
-        _add_rows(acc, pix, Lc)
-        _add_rows(alb, pix, ac.astype(np.float64))
-        _add_rows(nrm, pix, nc.astype(np.float64))
+        add_rows(acc, pix, Lc)
+        add_rows(alb, pix, ac.astype(np.float64))
+        add_rows(nrm, pix, nc.astype(np.float64))
         cov += np.bincount(pix, weights=cc.astype(np.float64), minlength=H * W)
     rad = (acc / spp).astype(np.float32).reshape(H, W, 3)
     log.debug("full frame %dx%d at %d spp: %d rays", W, H, spp, rays[0])

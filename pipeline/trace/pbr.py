@@ -186,33 +186,9 @@ def _scatter(scene: TraceScene, s: Surface, wo: np.ndarray, beta: np.ndarray, rn
     al = scene.area_lights
     if al.count and n:
         u = rng.random((3, n))
-        tri, b1, b2, pA = sample_area_lights(al, scene.vertices, scene.faces, u[0], u[1], u[2])
-        f = scene.faces[tri]
-        V = scene.vertices
-        q0, q1, q2 = V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]
-        b1 = b1.astype(np.float32)[:, None]
-        b2 = b2.astype(np.float32)[:, None]
-        b0 = 1 - b1 - b2
-        lp = b0 * q0 + b1 * q1 + b2 * q2
-        ln = _unit(np.cross(q1 - q0, q2 - q0))
-        E = scene.emission
-        Le = b0 * E[f[:, 0]] + b1 * E[f[:, 1]] + b2 * E[f[:, 2]]
-        dvec = lp - s.p
-        dist = np.linalg.norm(dvec, axis=1)
-        wl = dvec / np.maximum(dist, 1e-12)[:, None]
-        cos_l = np.abs(_dot(wl, ln))
-        pdf_sa = pA * dist.astype(np.float64) ** 2 / np.maximum(cos_l, 1e-12)
-        wl_l = frame_to_local(wl, frame)
-        fc, pdf_b = bsdf.eval_pdf(lobes, wo_l, wl_l)
-        ok = (_dot(wl, s.ng) > 0) & (cos_l > 1e-6) & (fc.max(axis=1) > 0)
-        idx = np.flatnonzero(ok)
-        if idx.size:
-            org = offset_origins(s.p[idx], s.ng[idx], wl[idx], eps)
-            occ = scene.intersector.occluded(org, wl[idx], dist[idx] - 2 * eps)
-            counter.rays += idx.size
-            vis = idx[~occ]
-            w = power_heuristic(pdf_sa[vis], pdf_b[vis])
-            L[vis] += beta[vis] * fc[vis] * Le[vis] * (w / pdf_sa[vis]).astype(np.float32)[:, None]
+        Ld, rays = area_light_nee(scene, s, lobes, wo_l, frame, beta, u[0], u[1], u[2], eps, one_sided=False)
+        L += Ld
+        counter.rays += rays
     pl = scene.point_lights
     for k in range(pl.count):
         dvec = pl.position[k].astype(np.float32) - s.p
@@ -229,6 +205,74 @@ def _scatter(scene: TraceScene, s: Surface, wo: np.ndarray, beta: np.ndarray, rn
     u = rng.random((3, n), dtype=np.float32)
     wi, weight, pdf = sample_continuation(lobes, wo_l, frame, s.ng, u[0], u[1], u[2])
     return L, wi, weight, pdf
+
+
+def area_light_nee(scene: TraceScene, s: Surface, lobes, wo_l: np.ndarray, frame, beta: np.ndarray,
+                   u0: np.ndarray, u1: np.ndarray, u2: np.ndarray, eps: float, *,
+                   one_sided: bool) -> tuple[np.ndarray, int]:
+    """Next-event estimation: one point on the area lights per surface point, MIS-weighted (power heuristic).
+
+    Shared by the object tracer (``one_sided=False``: the scan's emitting triangles light both ways) and
+    the full-frame integrator (``one_sided=True``: lamps emit from their front side only).
+
+    Parameters
+    ----------
+    s : the R surface points; ``lobes``, ``wo_l``, ``frame``: their BSDF, outgoing direction and frame
+    beta : (R, 3) path throughput
+    u0, u1, u2 : (R,) float64 uniforms for the light sample
+    eps : ray offset, metres
+
+    Returns
+    -------
+    (R, 3) float32 direct radiance x beta, and the number of shadow rays cast.
+    """
+    n = s.p.shape[0]
+    L = np.zeros((n, 3), np.float32)
+    tri, b1, b2, pA = sample_area_lights(scene.area_lights, scene.vertices, scene.faces, u0, u1, u2)
+    f = scene.faces[tri]
+    V = scene.vertices
+    q0, q1, q2 = V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]
+    b1 = b1.astype(np.float32)[:, None]
+    b2 = b2.astype(np.float32)[:, None]
+    b0 = 1 - b1 - b2
+    lp = b0 * q0 + b1 * q1 + b2 * q2
+    E = scene.emission
+    Le = b0 * E[f[:, 0]] + b1 * E[f[:, 1]] + b2 * E[f[:, 2]]
+    dvec = lp - s.p
+    dist = np.linalg.norm(dvec, axis=1)
+    wl = dvec / np.maximum(dist, 1e-12)[:, None]
+    if one_sided:
+        cos_l = -_dot(wl, scene.tri_normal[tri])          # > 0: the point sees the emitting side
+    else:
+        cos_l = np.abs(_dot(wl, _unit(np.cross(q1 - q0, q2 - q0))))
+    pdf_sa = pA * dist.astype(np.float64) ** 2 / np.maximum(cos_l, 1e-12)
+    fc, pdf_b = bsdf.eval_pdf(lobes, wo_l, frame_to_local(wl, frame))
+    ok = (_dot(wl, s.ng) > 0) & (cos_l > 1e-6) & (fc.max(axis=1) > 0)
+    idx = np.flatnonzero(ok)
+    if idx.size == 0:
+        return L, 0
+    org = offset_origins(s.p[idx], s.ng[idx], wl[idx], eps)
+    occ = scene.intersector.occluded(org, wl[idx], dist[idx] - 2 * eps)
+    vis = idx[~occ]
+    w = power_heuristic(pdf_sa[vis], pdf_b[vis])
+    L[vis] += beta[vis] * fc[vis] * Le[vis] * (w / pdf_sa[vis]).astype(np.float32)[:, None]
+    return L, int(idx.size)
+
+
+def emission_mis_weight(scene: TraceScene, prim: np.ndarray, t: np.ndarray, wi: np.ndarray,
+                        pdf_bsdf: np.ndarray) -> np.ndarray:
+    """(R,) float32 MIS weight of emitters ``prim`` hit at distance ``t`` by BSDF-sampled rays ``wi``.
+
+    Power heuristic against :func:`area_light_nee`'s pdf of sampling the same point (1 where the
+    triangle cannot be sampled as a light).
+    """
+    al = scene.area_lights
+    if not al.count:
+        return np.ones(prim.size, np.float32)
+    pt = al.prob_of_tri[prim]
+    cos_l = np.abs(_dot(scene.tri_normal[prim], wi))
+    pdf_l = pt * t.astype(np.float64) ** 2 / np.maximum(cos_l, 1e-12)
+    return np.where(pt > 0, power_heuristic(pdf_bsdf, pdf_l), 1.0).astype(np.float32)
 
 
 def sample_continuation(lobes, wo_l: np.ndarray, frame, ng: np.ndarray, u0: np.ndarray, u1: np.ndarray,
@@ -280,10 +324,9 @@ def trace_samples(scene: TraceScene, camera: Camera, pixels: np.ndarray, setting
     L = out["L"]
     beta = np.ones((idx.size, 3), np.float32)
     wo = -d[idx]
-    al = scene.area_lights
     for depth in range(settings.max_depth):
         Ld, wi, weight, pdf = _scatter(scene, s, wo, beta, rng, eps, counter)
-        _add_rows(L, idx, Ld)
+        add_rows(L, idx, Ld)
         beta = beta * weight
         alive = beta.max(axis=1) > 0
         if depth + 1 >= settings.rr_depth:
@@ -300,7 +343,7 @@ def trace_samples(scene: TraceScene, camera: Camera, pixels: np.ndarray, setting
         counter.rays += k.size
         miss = ~h.hit
         if miss.any():
-            _add_rows(L, idx[miss], beta[miss] * scene.escape_radiance(wi[miss]))
+            add_rows(L, idx[miss], beta[miss] * scene.escape_radiance(wi[miss]))
         hk = np.flatnonzero(h.hit)
         if hk.size == 0:
             break
@@ -309,13 +352,8 @@ def trace_samples(scene: TraceScene, camera: Camera, pixels: np.ndarray, setting
         if em.size:
             pe = h.prim[em]
             Le = emission_at(scene, pe, h.u[em], h.v[em])
-            w = np.ones(em.size, np.float32)
-            if al.count:
-                pt = al.prob_of_tri[pe]
-                cos_l = np.abs(_dot(scene.tri_normal[pe], wi[em]))
-                pdf_l = pt * h.t[em].astype(np.float64) ** 2 / np.maximum(cos_l, 1e-12)
-                w = np.where(pt > 0, power_heuristic(pdf[em], pdf_l), 1.0).astype(np.float32)
-            _add_rows(L, idx[em], beta[em] * Le * w[:, None])
+            w = emission_mis_weight(scene, pe, h.t[em], wi[em], pdf[em])
+            add_rows(L, idx[em], beta[em] * Le * w[:, None])
         sc_ = hk[scene.tri_scatters[prim]]
         if sc_.size == 0:
             break
@@ -325,7 +363,7 @@ def trace_samples(scene: TraceScene, camera: Camera, pixels: np.ndarray, setting
     return out
 
 
-def _add_rows(acc: np.ndarray, rows: np.ndarray, vals: np.ndarray) -> None:
+def add_rows(acc: np.ndarray, rows: np.ndarray, vals: np.ndarray) -> None:
     """``acc[rows] += vals`` with repeated rows summed (bincount per channel, faster than add.at)."""
     if rows.size == 0:
         return
@@ -388,7 +426,7 @@ def render(scene: TraceScene, camera: Camera, mask: np.ndarray, settings: Render
         b = min(settings.spp_batch, settings.spp - done)
         loc = np.repeat(active, b)
         r = trace_samples(scene, camera, pix[loc], settings, rng, counter)
-        _add_rows(Ls, loc, r["L"])
+        add_rows(Ls, loc, r["L"])
         lum = r["L"] @ LUMINANCE.astype(np.float64)
         lum2 += np.bincount(loc, weights=lum * lum, minlength=n)
         cnt += np.bincount(loc, minlength=n)
@@ -396,8 +434,8 @@ def render(scene: TraceScene, camera: Camera, mask: np.ndarray, settings: Render
         cov += np.bincount(loc, weights=c, minlength=n)
         ao_s += np.bincount(loc, weights=r["ao"] * c, minlength=n)
         ao_n += np.bincount(loc, weights=c, minlength=n)
-        _add_rows(alb, loc, r["albedo"].astype(np.float64))
-        _add_rows(nrm, loc, r["normal"].astype(np.float64))
+        add_rows(alb, loc, r["albedo"].astype(np.float64))
+        add_rows(nrm, loc, r["normal"].astype(np.float64))
         done += b
         if done >= settings.spp_min and done < settings.spp:
             m = (Ls[active] @ LUMINANCE) / cnt[active]
