@@ -40,20 +40,12 @@ from pipeline import blur
 from pipeline.config import SelectConfig
 from pipeline.seeding import item_rng
 from pipeline.select import score_frames, select_frames
+from pipeline.synthscan.degrade import motion_kernel
 
 SCAN = SHARED_DATA / "scans" / "7scenes-redkitchen"
 SHARES = (0.5, 0.2)   # share of blurred frames in a sequence: a bad scan, a typical handheld one
 KERNELS = ("motion9", "motion15", "motion25", "defocus5", "defocus9", "defocus15")
 MILD = ("motion5", "defocus3")
-
-
-def motion_kernel(length: int, angle: float) -> np.ndarray:
-    """(L, L) float32 line kernel of ``length`` px at ``angle`` radians, sum 1."""
-    k = np.zeros((length, length), np.float32)
-    c = (length - 1) / 2.0
-    for t in np.linspace(-c, c, 4 * length):
-        k[int(round(c + t * np.sin(angle))), int(round(c + t * np.cos(angle)))] += 1.0
-    return k / k.sum()
 
 
 def disc_kernel(diameter: int) -> np.ndarray:

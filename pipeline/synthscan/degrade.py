@@ -116,6 +116,15 @@ def camera_photo(linear: np.ndarray, camera: CameraModel | None, rng: np.random.
     return encode_photo(camera_psf(lin, camera), rng, read_noise=camera.read_noise, shot_noise=camera.shot_noise)
 
 
+def motion_kernel(length: int, angle: float) -> np.ndarray:
+    """(L, L) float32 line kernel of ``length`` px at ``angle`` radians, sum 1 (linear motion blur)."""
+    k = np.zeros((length, length), np.float32)
+    c = (length - 1) / 2.0
+    for t in np.linspace(-c, c, 4 * length):
+        k[int(round(c + t * np.sin(angle))), int(round(c + t * np.cos(angle)))] += 1.0
+    return k / k.sum()
+
+
 def disk_kernel(radius: float) -> np.ndarray:
     """Normalised anti-aliased disk of ``radius`` pixels (a thin lens's defocus PSF); (k, k) float32."""
     r = max(float(radius), 0.5)

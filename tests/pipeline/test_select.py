@@ -19,6 +19,7 @@ from pipeline.errors import ConfigError, InputError
 from pipeline.seeding import item_rng
 from pipeline.select import (BLURRED, DARK, DUPLICATE, FEW_EDGES, KEPT, LIMIT, TEXTURELESS, load_selection,
                              save_selection, score_frames, select_frames, selection_doc)
+from pipeline.synthscan.degrade import motion_kernel
 
 H, W = 240, 320
 
@@ -26,14 +27,6 @@ H, W = 240, 320
 # ---------------------------------------------------------------------------------------------------
 # Synthetic frames
 # ---------------------------------------------------------------------------------------------------
-
-def motion_kernel(length: int, angle: float) -> np.ndarray:
-    k = np.zeros((length, length), np.float32)
-    c = (length - 1) / 2.0
-    for t in np.linspace(-c, c, 4 * length):
-        k[int(round(c + t * np.sin(angle))), int(round(c + t * np.cos(angle)))] += 1.0
-    return k / k.sum()
-
 
 def scene(seed: int) -> np.ndarray:
     """(H, W) float32 0..255 noise-free textured scene: smooth blobs, rectangles, thin lines."""
