@@ -258,6 +258,9 @@ def _setup_logging(args: argparse.Namespace) -> None:
         level = logging.DEBUG
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr,
                         force=True)
+    from pipeline.runner import log_warnings
+
+    log_warnings()
 
 
 def _interrupt(signum, frame):

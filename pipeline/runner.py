@@ -28,6 +28,7 @@ import multiprocessing
 import os
 import time
 import traceback
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -125,6 +126,16 @@ def item_results(run_dir: Path, stage: str) -> dict[str, dict]:
     return out
 
 
+def log_warnings() -> None:
+    """Show Python warnings (e.g. an IngestWarning about skipped frames) as one log line each, without
+    the source file and code line the default display adds: they are messages for users, not bugs.
+    Called by the CLI and in every worker process."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        logging.getLogger("scansynth").warning("%s: %s", category.__name__, message)
+
+    warnings.showwarning = show
+
+
 def item_problems(run_dir: Path, stage: str, keys: set[str]) -> dict[str, list[str]]:
     """Inputs that the finished items among ``keys`` left out (their ``<key>.problems.json``), by key."""
     root = Path(run_dir) / stage / ITEMS_DIR
@@ -146,6 +157,7 @@ def execute_item(run_dir: str, cfg_dict: dict, stage_ref: str, item: Item) -> tu
     from pipeline.stages import get_stage
 
     t0 = time.perf_counter()
+    log_warnings()
     run = Path(run_dir)
     cfg = build_config(cfg_dict, base_dir=run)
     stage = get_stage(stage_ref)
