@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pipeline.camera import Camera, RGBDRig
+
 
 @dataclass(frozen=True)
 class Scan:
@@ -45,6 +47,16 @@ class Scan:
     @property
     def num_frames(self) -> int:
         return int(self.frame_ids.shape[0])
+
+    def rig(self, i: int) -> RGBDRig:
+        """Frame ``i``'s colour and depth cameras (intrinsics, sizes, ``T_d2c`` from ``meta``)."""
+        return RGBDRig(color_K=self.K[i], color_width=self.width, color_height=self.height,
+                       depth_K=self.depth_K[i], depth_width=self.depth_width, depth_height=self.depth_height,
+                       T_d2c=np.asarray(self.meta.get("T_d2c", np.eye(4)), np.float64))
+
+    def camera(self, i: int) -> Camera:
+        """Frame ``i``'s colour camera: the camera of its photo and of everything drawn on it."""
+        return Camera(K=self.K[i], T_c2w=self.T_c2w[i], width=self.width, height=self.height)
 
 
 @dataclass(frozen=True)
