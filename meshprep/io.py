@@ -65,6 +65,48 @@ def check_writable(path: str | Path, allowed: tuple[str, ...] = WRITE_EXTENSIONS
     return p
 
 
+def faces_with_missing_vertices(path: str | Path, limit: int = 5) -> dict:
+    """Faces of an OBJ file that point at a vertex the file does not have (PyMeshLab drops them).
+
+    ``f 1 2 9`` in a file with three vertices is read as no face at all, silently; this finds them so
+    the caller can say what was dropped. Indices are 1-based or negative (relative to the vertices read
+    so far), as the OBJ format defines; ``v/vt/vn`` triplets use their first number. Other formats
+    (PLY, OFF, STL, glTF) index vertices in binary or by construction and are not checked.
+
+    Returns
+    -------
+    dict: ``count`` (faces dropped) and ``examples`` (up to ``limit`` strings
+    ``"line L: f 1 2 9 (vertex 9 of 3)"``). ``count`` is 0 for files that are not OBJ.
+    """
+    p = Path(path)
+    out: dict = {"count": 0, "examples": []}
+    if p.suffix.lower() != ".obj":
+        return out
+    n_v = 0
+    with open(p, "r", encoding="utf-8", errors="replace") as fh:
+        for line_no, line in enumerate(fh, 1):
+            if line.startswith("v "):
+                n_v += 1
+            elif line.startswith("f "):
+                bad = []
+                for tok in line.split()[1:]:
+                    head = tok.split("/", 1)[0]
+                    try:
+                        i = int(head)
+                    except ValueError:
+                        bad.append(tok)
+                        continue
+                    j = i if i > 0 else n_v + 1 + i
+                    if not 1 <= j <= n_v:
+                        bad.append(tok)
+                if bad:
+                    out["count"] += 1
+                    if len(out["examples"]) < limit:
+                        out["examples"].append(f"line {line_no}: {line.strip()} (vertex "
+                                               f"{', '.join(bad)} of {n_v})")
+    return out
+
+
 def load_meshset(path: str | Path) -> "pymeshlab.MeshSet":
     """Load a mesh file into a PyMeshLab MeshSet holding exactly one (current) mesh.
 
@@ -92,6 +134,12 @@ def load_meshset(path: str | Path) -> "pymeshlab.MeshSet":
             ms.set_current_mesh(mid)
             ms.delete_current_mesh()
         ms.set_current_mesh(keep)
+    dropped = faces_with_missing_vertices(p)
+    if dropped["count"]:
+        log.warning("%s: dropped %d face%s that point%s at a missing vertex (%s%s); check the exporter",
+                    p, dropped["count"], "" if dropped["count"] == 1 else "s",
+                    "s" if dropped["count"] == 1 else "", "; ".join(dropped["examples"]),
+                    ", ..." if dropped["count"] > len(dropped["examples"]) else "")
     names = list(ms.current_mesh().textures()) if ms.current_mesh().texture_number() else []
     if "dummy.png" in names:
         # PyMeshLab could not decode a texture image (its wheels read PNG but not JPEG); UVs are

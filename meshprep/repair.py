@@ -453,7 +453,8 @@ def repair(in_path: str | Path, out_path: str | Path, *, kind: str = "auto",
         ``ok: false``; no mesh is written).
     """
     from meshprep.inspect import count_self_intersections, inspect_arrays
-    from meshprep.io import check_writable, load_cameras, load_meshset, save_meshset, write_json
+    from meshprep.io import (check_writable, faces_with_missing_vertices, load_cameras, load_meshset,
+                             save_meshset, write_json)
 
     t0 = time.perf_counter()
     out_path = check_writable(out_path)
@@ -468,6 +469,11 @@ def repair(in_path: str | Path, out_path: str | Path, *, kind: str = "auto",
         self_intersections = 0 < after["faces"] <= constants.SELF_INTERSECTION_MAX_FACES
     if self_intersections and after["faces"] and after["non_finite_vertices"] == 0:
         after["self_intersecting_faces"] = count_self_intersections(*_arrays(ms))
+    dropped = faces_with_missing_vertices(in_path)
+    if dropped["count"]:
+        # Dropped by the reader, before ``before`` was measured: the first change of the repair.
+        info["changes"].insert(0, {"step": "drop faces that point at a missing vertex (on reading)",
+                                   "vertices": 0, "faces": -dropped["count"], "examples": dropped["examples"]})
     rep = {"command": "repair", "input": str(in_path), "output": str(out_path), **info,
            "before": before, "after": after}
     report_path = Path(report) if report else out_path.with_name(out_path.name + ".report.json")

@@ -1,0 +1,5 @@
+import sys
+
+from meshprep.cli import main
+
+sys.exit(main())
