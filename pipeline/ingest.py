@@ -33,7 +33,8 @@ from pipeline.config import BUILTIN_PREFIX, Config
 from pipeline.errors import InputError, UserError
 from pipeline.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, load_npz, read_json
 from pipeline.runner import INPUT_PROBLEMS, Item, Stage, StageContext
-from pipeline.scanformats.common import IngestWarning, read_color, read_depth, select_frames, subsample
+from pipeline.scanformats.common import (BadFrameWarning, IngestWarning, read_color, read_depth, select_frames,
+                                         subsample)
 from pipeline.scanformats.mesh import (canonical_order, check_mesh_covers_cameras, load_mesh_file, ply_bytes,
                                        read_room_ply)
 from pipeline.types import ObjectModel, Scan
@@ -179,6 +180,7 @@ def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -
         warnings.simplefilter("always", IngestWarning)
         scan = read_scan(path, cfg.scan.format)
     notes = [str(w.message) for w in caught if issubclass(w.category, IngestWarning)]
+    broken = [str(w.message) for w in caught if issubclass(w.category, BadFrameWarning)]
     for w in caught:  # re-issue so callers (and pytest) see them; they are also kept in scan.json
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     n_read = scan.num_frames
@@ -202,7 +204,7 @@ def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -
     atomic_write_bytes(mesh_path, ply_bytes(V, F, C))
     meta = dict(scan.meta)
     meta.update({"up_source": source, "up": up_info, "mesh": mesh_note, "frames_read": n_read,
-                 "frames_kept": int(len(ok)), "frames_unreadable": unreadable, "warnings": notes, "mesh_vertices": int(len(V)),
+                 "frames_kept": int(len(ok)), "frames_unreadable": broken + unreadable, "warnings": notes, "mesh_vertices": int(len(V)),
                  "mesh_faces": int(len(F))})
     scan = dataclasses.replace(scan, name=name, up_w=up.astype(np.float64), mesh_path=str(mesh_path.resolve()),
                                meta=meta)

@@ -7,8 +7,9 @@ Items: ``<scene>/room`` per scene and ``objects`` once. Outputs:
   ``mesh_vertices`` (V, 3) float32 / ``mesh_faces`` (T, 3) int32 for exact contact distances;
 - ``RUN/prep/<scene>/room_trace.ply``: the room simplified within ``prep.room_max_error``;
 - ``RUN/prep/objects/obj_<id>.npz``: meshprep's object proxy (hull, parts, samples, ``mass``, ``com``,
-  ``inertia`` at ``prep.density``). An object that meshprep cannot close falls back to the mass
-  properties of its convex hull (flagged ``fallback_hull = 1`` in the NPZ and logged).
+  ``inertia`` at ``prep.density``; ``repair``: what it took). A model that is not a closed solid as
+  given is repaired by meshprep (``kind="object"``) for its mass properties; only one the repair cannot
+  close falls back to the mass properties of its convex hull (``fallback_hull = 1``, logged).
 """
 
 from __future__ import annotations
@@ -62,18 +63,55 @@ def hull_proxy(vertices: np.ndarray, faces: np.ndarray, density: float) -> dict[
             "inertia": np.asarray(mp["inertia"], float) * density, "fallback_hull": np.int32(1)}
 
 
-def object_proxy(vertices: np.ndarray, faces: np.ndarray, density: float) -> dict[str, np.ndarray]:
-    """meshprep's object proxy of a mesh, or :func:`hull_proxy` when meshprep fails on it."""
+def object_proxy(vertices: np.ndarray, faces: np.ndarray, density: float,
+                 where: str = "mesh") -> dict[str, np.ndarray]:
+    """meshprep's object proxy of a mesh, repairing it into a closed solid first where it is not one.
+
+    A model as given is used when meshprep can make a solid of it. Otherwise meshprep's repair
+    (``kind="object"``: coherent orientation, non-manifold edges, holes, ...) runs on it and the proxy is
+    made from the repaired mesh; the mesh that is rendered and annotated stays the model as given. Only
+    when the repair cannot close it does :func:`hull_proxy` give the convex hull's mass properties.
+    The key ``repair`` (a one-line ``str`` array) says what it took: ``"none"``, the repair steps, or why
+    the hull was used; it is logged too.
+    """
     from meshprep.errors import MeshprepError
     from meshprep.proxy import object_proxy_arrays
 
     try:
-        out = object_proxy_arrays(vertices, faces, density=density)
+        out = object_proxy_arrays(vertices, faces, density=density, where=where)
         out["fallback_hull"] = np.int32(0)
+        out["repair"] = np.array("none")
         return out
     except (MeshprepError, ValueError, RuntimeError) as e:
-        log.warning("meshprep could not make a solid (%s); using the convex hull's mass properties", e)
-        return hull_proxy(vertices, faces, density)
+        first = str(e)
+    from meshprep.inspect import inspect_arrays
+    from meshprep.io import arrays_of, meshset_from_arrays
+    from meshprep.repair import check_repaired, repair_meshset
+
+    try:
+        ms = meshset_from_arrays(vertices, faces)
+        info = repair_meshset(ms, kind="object")
+        v, f = arrays_of(ms)
+        check_repaired(inspect_arrays(v, f, self_intersections=False), "object", where)
+        out = object_proxy_arrays(v, f, density=density, where=where)
+    except (MeshprepError, ValueError, RuntimeError) as e:
+        log.warning("%s: meshprep could not make a solid (%s), nor repair it into one (%s); using the "
+                    "convex hull's mass properties", where, first, e)
+        out = hull_proxy(vertices, faces, density)
+        out["repair"] = np.array(f"convex hull: {e}")
+        return out
+    steps = "; ".join(_step_text(c) for c in info["changes"]) or "no change"
+    log.info("%s: not a closed solid as given (%s); meshprep repair: %s -> solid of %.1f cm^3",
+             where, first, steps, float(out["volume"]) * 1e6)
+    out["fallback_hull"] = np.int32(0)
+    out["repair"] = np.array(f"repaired: {steps}")
+    return out
+
+
+def _step_text(change: dict) -> str:
+    """``"orient faces coherently (faces_flipped 7)"`` from a meshprep repair change record."""
+    extra = ", ".join(f"{k} {v}" for k, v in change.items() if k != "step" and v)
+    return f"{change['step']} ({extra})" if extra else change["step"]
 
 
 def plan(ctx: StageContext) -> list[Item]:
@@ -90,9 +128,10 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     if item.key == "objects":
         out = {}
         for obj in load_objects(ctx.run_dir):
-            pr = object_proxy(obj.vertices, obj.faces, cfg.density)
+            pr = object_proxy(obj.vertices, obj.faces, cfg.density, where=f"object {obj.obj_id} ({obj.name})")
             atomic_save_npz(object_proxy_path(ctx.run_dir, obj.obj_id), **pr)
-            out[str(obj.obj_id)] = {"mass": float(pr["mass"]), "fallback_hull": int(pr["fallback_hull"])}
+            out[str(obj.obj_id)] = {"mass": float(pr["mass"]), "fallback_hull": int(pr["fallback_hull"]),
+                                    "repair": str(pr["repair"])}
         return {"objects": out}
     from meshprep.proxy import room_distance_grid
     from meshprep.simplify import simplify

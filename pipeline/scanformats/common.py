@@ -12,9 +12,14 @@ Decided behaviours for imperfect input (each has a test):
   lacks its colour or depth image, is skipped; the skipped frames are counted in one
   :class:`IngestWarning` per cause and in ``Scan.meta["skipped"]``;
 - irregular frame numbering (gaps in an otherwise regular step) is kept as is, with a warning;
-- a pose that is finite but not a rigid transform, a malformed matrix file, missing or zero-focal
-  intrinsics, a missing or unreadable image, depth of the wrong size or dtype: :class:`InputError`
-  naming the file and the fix; the whole scan fails (a scan with a broken file is not silently thinned).
+- a frame whose pose file cannot be read as a 4x4 matrix or holds a finite pose that is not a rigid
+  transform (a scaled or sheared rotation, a last row other than 0 0 0 1) is skipped the same way, with
+  the first such file and its measured error named in the warning: one bad frame costs only itself;
+- a scan fails only when no frame is left, with an :class:`InputError` that counts the frames seen and
+  why each group was left out;
+- a malformed calibration file (intrinsics, extrinsics), missing or zero-focal intrinsics, a missing or
+  unreadable image, depth of the wrong size or dtype: :class:`InputError` naming the file and the fix;
+  the whole scan fails (these concern every frame, not one).
 """
 
 from __future__ import annotations
@@ -36,9 +41,14 @@ class IngestWarning(UserWarning):
     """Input was usable but imperfect (skipped frames, gaps, implausible units); the message says what."""
 
 
-def warn(msg: str) -> None:
+class BadFrameWarning(IngestWarning):
+    """Frames were left out because one of their files is broken (not merely absent, as a frame without
+    a depth map or a lost-tracking pose is): ingest reports these as the scan's input problems."""
+
+
+def warn(msg: str, category: type[IngestWarning] = IngestWarning) -> None:
     """Issue an :class:`IngestWarning` (also visible in the log through the warnings capture)."""
-    warnings.warn(msg, IngestWarning, stacklevel=3)
+    warnings.warn(msg, category, stacklevel=3)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -89,6 +99,22 @@ def check_pose(T: np.ndarray, path: Path | str) -> np.ndarray | None:
     out = T.copy()
     out[:3, :3] = U @ Vt
     out[3] = [0.0, 0.0, 0.0, 1.0]
+    return out
+
+
+def read_frame_poses(pose_files: dict[int, Path]) -> dict[int, np.ndarray | str | None]:
+    """Read and check each frame's camera-to-world pose file, by frame number.
+
+    Returns, per frame, the pose (see :func:`check_pose`), ``None`` for a non-finite pose, or the
+    one-line reason (a ``str``) when the file is malformed or its pose is not a rigid transform; such a
+    frame is skipped by :func:`match_frames`, not the whole scan.
+    """
+    out: dict[int, np.ndarray | str | None] = {}
+    for i, p in sorted(pose_files.items()):
+        try:
+            out[i] = check_pose(read_matrix(p, 4, 4, "pose"), p)
+        except InputError as e:
+            out[i] = str(e)
     return out
 
 
@@ -202,7 +228,7 @@ def match_frames(root: Path, colors: dict[int, Path], depths: dict[int, Path] | 
     Returns ``(kept frame ids sorted, skipped counts by cause)``.
     """
     ids = sorted(set(colors) | set(pose_files) | (set(depths) if depths is not None else set()))
-    skipped = {"no_color": [], "no_depth": [], "no_pose": [], "invalid_pose": []}
+    skipped = {"no_color": [], "no_depth": [], "no_pose": [], "invalid_pose": [], "bad_pose": []}
     kept = []
     for i in ids:
         if i not in colors:
@@ -213,17 +239,22 @@ def match_frames(root: Path, colors: dict[int, Path], depths: dict[int, Path] | 
             skipped["no_pose"].append(i)
         elif poses.get(i) is None:
             skipped["invalid_pose"].append(i)
+        elif isinstance(poses[i], str):
+            skipped["bad_pose"].append(i)
         else:
             kept.append(i)
     why = {"no_color": "have no colour image", "no_depth": "have no depth map",
-           "no_pose": "have no pose file", "invalid_pose": "have a non-finite (invalid) pose"}
+           "no_pose": "have no pose file", "invalid_pose": "have a non-finite (invalid) pose",
+           "bad_pose": "have a malformed pose or one that is not a rigid transform"}
     for cause, lst in skipped.items():
         if lst:
-            warn(f"{root}: skipped {len(lst)} of {len(ids)} frame(s) that {why[cause]} "
-                 f"(first: frame {lst[0]})")
+            first = f"frame {lst[0]}" + (f": {poses[lst[0]]}" if cause == "bad_pose" else "")
+            warn(f"{root}: skipped {len(lst)} of {len(ids)} frame(s) that {why[cause]} (first: {first})",
+                 BadFrameWarning if cause == "bad_pose" else IngestWarning)
     if not kept:
-        raise InputError(f"{root}: no frame has a colour image, a depth map and a valid pose "
-                         f"({len(ids)} frame number(s) seen); check the scan folder")
+        causes = ", ".join(f"{len(lst)} {why[c]}" for c, lst in skipped.items() if lst)
+        raise InputError(f"{root}: no usable frame: 0 of {len(ids)} frame number(s) seen have a colour image, "
+                         f"a depth map and a valid pose ({causes or 'none seen'}); check the scan folder")
     if len(ids) >= 3:  # gaps in the files' numbering (skipped frames are reported above)
         steps = np.diff(np.asarray(ids))
         step = int(np.median(steps))

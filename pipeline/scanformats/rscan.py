@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import InputError
-from pipeline.scanformats.common import (check_extrinsic, check_image_sizes, check_intrinsics, check_pose, index_files,
-                                         match_frames, read_matrix)
+from pipeline.scanformats.common import (check_extrinsic, check_image_sizes, check_intrinsics, index_files,
+                                         match_frames, read_frame_poses, read_matrix)
 from pipeline.types import Scan
 
 FORMAT = "3rscan"
@@ -95,7 +95,7 @@ def read(root: Path) -> Scan:
     colors = index_files(seq, COLOR_RX)
     depths = index_files(seq, DEPTH_RX)
     pose_files = index_files(seq, POSE_RX)
-    poses = {i: check_pose(read_matrix(p, 4, 4, "pose"), p) for i, p in sorted(pose_files.items())}
+    poses = read_frame_poses(pose_files)
     kept, skipped = match_frames(root, colors, depths, poses, pose_files)
     cpaths = [str(colors[i].resolve()) for i in kept]
     dpaths = [str(depths[i].resolve()) for i in kept]

@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import InputError
-from pipeline.scanformats.common import (check_extrinsic, check_image_sizes, check_intrinsics, check_pose,
-                                         index_files, match_frames, read_matrix)
+from pipeline.scanformats.common import (check_extrinsic, check_image_sizes, check_intrinsics, index_files,
+                                         match_frames, read_frame_poses, read_matrix)
 from pipeline.types import Scan
 
 FORMAT = "scannet"
@@ -54,7 +54,7 @@ def read(root: Path) -> Scan:
         if (intr / "extrinsic_color.txt").is_file() else np.eye(4)
     Ed = read_matrix(intr / "extrinsic_depth.txt", 4, 4, "depth extrinsics") \
         if (intr / "extrinsic_depth.txt").is_file() else np.eye(4)
-    poses = {i: check_pose(read_matrix(p, 4, 4, "pose"), p) for i, p in sorted(pose_files.items())}
+    poses = read_frame_poses(pose_files)
     kept, skipped = match_frames(root, colors, depths, poses, pose_files)
     cpaths = [str(colors[i].resolve()) for i in kept]
     dpaths = [str(depths[i].resolve()) for i in kept]

@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import InputError
-from pipeline.scanformats.common import (check_image_sizes, check_intrinsics, check_pose, index_files,
-                                         match_frames, read_matrix, read_numbers)
+from pipeline.scanformats.common import (check_image_sizes, check_intrinsics, index_files, match_frames,
+                                         read_frame_poses, read_matrix, read_numbers)
 from pipeline.types import Scan
 
 FORMAT = "7scenes"
@@ -70,7 +70,7 @@ def read(root: Path) -> Scan:
         raise InputError(f"{root}: camera-intrinsics.txt is missing; write the 3x3 colour intrinsics there "
                          f"(7-Scenes Kinect: '585 0 320 / 0 585 240 / 0 0 1')")
     K = read_matrix(kpath, 3, 3, "intrinsics")
-    poses = {i: check_pose(read_matrix(p, 4, 4, "pose"), p) for i, p in sorted(pose_files.items())}
+    poses = read_frame_poses(pose_files)
     kept, skipped = match_frames(root, colors, depths, poses, pose_files)
     cpaths = [str(colors[i].resolve()) for i in kept]
     dpaths = [str(depths[i].resolve()) for i in kept]

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import InputError
-from pipeline.scanformats.common import (check_image_sizes, check_intrinsics, check_pose, warn)
+from pipeline.scanformats.common import BadFrameWarning, check_image_sizes, check_intrinsics, check_pose, warn
 from pipeline.types import Scan
 
 FORMAT = "transforms"
@@ -89,6 +89,7 @@ def read(root: Path) -> Scan:
     scale = float(doc.get("depth_unit_scale_factor", 0.001))
     Ks, T, cpaths, dpaths, ids = [], [], [], [], []
     n_invalid = 0
+    bad: list[str] = []
     size = None
     for i, fr in enumerate(frames):
         if "file_path" not in fr or "transform_matrix" not in fr:
@@ -100,7 +101,11 @@ def read(root: Path) -> Scan:
         if M.shape != (4, 4):
             raise InputError(f"{jpath}: frame {i} transform_matrix is not a 4x4 list of numbers; fix the file")
         where = f"{jpath} (frame {i}, {fr['file_path']})"
-        Tgl = check_pose(M, where)
+        try:
+            Tgl = check_pose(M, where)
+        except InputError as e:  # not a rigid transform: this frame only (common.match_frames' rule)
+            bad.append(str(e))
+            continue
         if Tgl is None:
             n_invalid += 1
             continue
@@ -118,8 +123,12 @@ def read(root: Path) -> Scan:
         ids.append(i)
     if n_invalid:
         warn(f"{jpath}: skipped {n_invalid} of {len(frames)} frame(s) that have a non-finite (invalid) pose")
+    if bad:
+        warn(f"{jpath}: skipped {len(bad)} of {len(frames)} frame(s) that have a pose that is not a rigid "
+             f"transform (first: {bad[0]})", BadFrameWarning)
     if not ids:
-        raise InputError(f"{jpath}: no frame has a valid pose")
+        raise InputError(f"{jpath}: no usable frame: 0 of {len(frames)} frame(s) have a valid pose "
+                         f"({n_invalid} non-finite, {len(bad)} not a rigid transform); fix the poses")
     has_depth = [bool(p) for p in dpaths]
     if any(has_depth) and not all(has_depth):
         raise InputError(f"{jpath}: {has_depth.count(False)} frame(s) lack 'depth_file_path' while others "
@@ -133,7 +142,7 @@ def read(root: Path) -> Scan:
     if (wd, hd) != (w, h):
         Kd[:, 0] *= wd / w
         Kd[:, 1] *= hd / h
-    meta = {"skipped": {"invalid_pose": n_invalid}, "transforms_file": Path(os.path.relpath(jpath, root)).as_posix(),
+    meta = {"skipped": {"invalid_pose": n_invalid, "bad_pose": len(bad)}, "transforms_file": Path(os.path.relpath(jpath, root)).as_posix(),
             "registration": "depth assumed rendered from the colour camera (same pose and K)"}
     mesh = ""
     if doc.get("ply_file_path"):

@@ -25,6 +25,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pipeline.runner import ITEMS_DIR
@@ -188,8 +189,9 @@ def test_repeated_kill9_then_resume_is_byte_identical(reference, tmp_path):
 
 
 def _corrupt_scans(root: Path) -> tuple[Path, Path]:
-    """Two copies of the built-in tiny scan: one with a truncated colour PNG and a depth PNG of garbage
-    (two of its eight frames), one whose every colour image is garbage."""
+    """Two copies of the built-in tiny scan: one with a truncated colour PNG, a depth PNG of garbage and
+    a pose that is not a rigid transform (three of its eight frames), one whose every colour image is
+    garbage."""
     from pipeline.synthscan import builtin_scan
 
     scan = builtin_scan("tiny", root / "tiny-src")
@@ -199,6 +201,10 @@ def _corrupt_scans(root: Path) -> tuple[Path, Path]:
     png = bad / "frames" / "frame-000002.color.png"
     png.write_bytes(png.read_bytes()[:200])
     (bad / "frames" / "frame-000005.depth.png").write_bytes(b"not a png")
+    pose = bad / "frames" / "frame-000003.pose.txt"   # a scaled rotation: one bad frame, not a bad scan
+    T = np.loadtxt(pose)
+    T[:3, :3] *= 1.05
+    np.savetxt(pose, T)
     for p in (dead / "frames").glob("*.color.png"):
         p.write_bytes(b"garbage")
     return bad, dead
@@ -221,12 +227,16 @@ def test_bad_inputs_finish_what_they_can(tmp_path):
 
     # the corrupt frames: left out, each named with its file and cause, console and run.json
     left_out = _problems(report)[("ingest", "corrupt-scan")]
-    assert len(left_out) == 2 and report["input_problems"] == 2, left_out
-    for name, line in zip(("frame-000002.color.png", "frame-000005.depth.png"), left_out):
+    assert len(left_out) == 3 and report["input_problems"] == 3, left_out
+    pose_line = next(line for line in left_out if "pose.txt" in line)
+    assert "skipped 1 of 8 frame(s)" in pose_line and "frame-000003.pose.txt: pose is not a rigid" in pose_line
+    for name, line in zip(("frame-000002.color.png", "frame-000005.depth.png"),
+                          [line for line in left_out if line != pose_line]):
         assert name in line and "cannot be read" in line, line
+    for line in left_out:
         assert f"LEFT OUT ingest corrupt-scan: {line}" in r.stderr
     ingested = json.loads((out / "ingest" / "_items" / "corrupt-scan.done.json").read_text())
-    assert ingested["frames"] == 6
+    assert ingested["frames"] == 5
 
     # the scan with no readable frame fails alone, and says why
     fails = {(s["stage"], k): v for s in report["stages"] for k, v in s["failures"].items()}

@@ -381,33 +381,65 @@ def test_scannet_inf_poses_are_skipped_and_counted(tmp_path):
 
 def test_all_poses_invalid(tmp_path):
     write_scannet(tmp_path, n=2, invalid=(0, 1))
-    with pytest.warns(IngestWarning), pytest.raises(InputError, match="no frame has .* a valid pose"):
+    with pytest.warns(IngestWarning), pytest.raises(
+            InputError, match=r"no usable frame: 0 of 2 frame number\(s\) seen .*\(2 have a non-finite"):
         read_scan(tmp_path)
 
 
-def test_pose_not_rigid(tmp_path):
-    write_7scenes(tmp_path, n=3)
+def test_pose_not_rigid_costs_only_its_frame(tmp_path):
+    """A scaled rotation (det 1.33) is one bad frame: skipped and named, the others are kept."""
+    truth = write_7scenes(tmp_path, n=3)
     T = trajectory(3)[1]
     T[:3, :3] *= 1.1
     write_mat(tmp_path / "frame-000001.pose.txt", T)
-    with pytest.raises(InputError, match=r"frame-000001\.pose\.txt: pose is not a rigid transform \(det R = 1\.33"):
-        read_scan(tmp_path)
+    with pytest.warns(IngestWarning, match=r"skipped 1 of 3 frame\(s\) that have a malformed pose or one that "
+                                           r"is not a rigid transform \(first: frame 1: .*frame-000001\.pose\.txt: "
+                                           r"pose is not a rigid transform \(det R = 1\.33"):
+        s = read_scan(tmp_path)
+    assert list(s.frame_ids) == [0, 2] and s.meta["skipped"]["bad_pose"] == 1
+    np.testing.assert_allclose(s.T_c2w, truth["T"][[0, 2]], atol=1e-9)
 
 
-def test_pose_not_orthonormal(tmp_path):
+def test_pose_not_orthonormal_costs_only_its_frame(tmp_path):
     write_7scenes(tmp_path, n=3)
     T = trajectory(3)[2]
     T[0, 1] += 0.2  # shear
     write_mat(tmp_path / "frame-000002.pose.txt", T)
-    with pytest.raises(InputError, match="not a rigid transform"):
-        read_scan(tmp_path)
+    with pytest.warns(IngestWarning, match=r"frame 2: .*not a rigid transform \(det R = .*\|R\^T R - I\| = 1\.95e-01"):
+        s = read_scan(tmp_path)
+    assert list(s.frame_ids) == [0, 1]
 
 
-def test_pose_malformed(tmp_path):
+def test_pose_malformed_costs_only_its_frame(tmp_path):
     write_7scenes(tmp_path, n=3)
     (tmp_path / "frame-000000.pose.txt").write_text("1 0 0\n0 1 0\n")
-    with pytest.raises(InputError, match=r"frame-000000\.pose\.txt: pose must hold 4x4 = 16 numbers, found 6"):
+    with pytest.warns(IngestWarning, match=r"frame-000000\.pose\.txt: pose must hold 4x4 = 16 numbers, found 6"):
+        s = read_scan(tmp_path)
+    assert list(s.frame_ids) == [1, 2]
+
+
+def test_scan_with_every_pose_broken_says_how_much_was_usable(tmp_path):
+    write_7scenes(tmp_path, n=3)
+    for k in range(3):
+        T = trajectory(3)[k]
+        T[:3, :3] *= 2.0
+        write_mat(tmp_path / f"frame-{k:06d}.pose.txt", T)
+    with pytest.warns(IngestWarning), pytest.raises(
+            InputError, match=r"no usable frame: 0 of 3 frame number\(s\) seen .*\(3 have a malformed pose"):
         read_scan(tmp_path)
+
+
+def test_transforms_json_non_rigid_pose_costs_only_its_frame(tmp_path):
+    write_transforms(tmp_path, n=4)
+    doc = json.loads((tmp_path / "transforms.json").read_text())
+    M = np.asarray(doc["frames"][2]["transform_matrix"])
+    M[:3, :3] *= 0.5
+    doc["frames"][2]["transform_matrix"] = M.tolist()
+    (tmp_path / "transforms.json").write_text(json.dumps(doc))
+    with pytest.warns(IngestWarning, match=r"skipped 1 of 4 frame\(s\) that have a pose that is not a rigid "
+                                           r"transform \(first: .*frame 2"):
+        s = read_scan(tmp_path)
+    assert list(s.frame_ids) == [0, 1, 3] and s.meta["skipped"]["bad_pose"] == 1
 
 
 def test_frame_numbering_gaps_are_kept_with_warning(tmp_path):
@@ -439,7 +471,7 @@ def test_count_mismatch_missing_pose_and_depth(tmp_path):
     msgs = " | ".join(str(w.message) for w in rec)
     assert "no pose file" in msgs and "no depth map" in msgs
     assert list(s.frame_ids) == [0, 2, 4]
-    assert s.meta["skipped"] == {"no_color": 0, "no_depth": 1, "no_pose": 1, "invalid_pose": 0}
+    assert s.meta["skipped"] == {"no_color": 0, "no_depth": 1, "no_pose": 1, "invalid_pose": 0, "bad_pose": 0}
 
 
 def test_intrinsics_missing(tmp_path):
