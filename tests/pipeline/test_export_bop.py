@@ -278,3 +278,91 @@ def test_chunks_split_into_bop_scene_folders(run, tmp_path):
     assert not (root / export.MERGED_COCO).exists()  # formats = bop only
     assert not (root / "train_pbr" / "000000" / "scene_gt_coco.json").exists()
     assert sorted(p.name for p in (root / "train_pbr" / "000001" / "rgb").iterdir()) == ["000000.png", "000001.png"]
+
+
+# ---------------------------------------------------------------------------------------------------
+# models_info.json round trip: load (mm -> m) then export (m -> mm) gives the original back
+# ---------------------------------------------------------------------------------------------------
+
+LMO_MODELS = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "objects" / "lmo" / "models"
+INFO_NUMBERS = ("diameter", "min_x", "min_y", "min_z", "size_x", "size_y", "size_z")
+
+
+def _assert_models_info_roundtrip(original: dict, exported: dict) -> None:
+    assert sorted(exported, key=int) == sorted(original, key=int)
+    for k, o in original.items():
+        e = exported[k]
+        for key in INFO_NUMBERS:  # recomputed from the float32 PLY vertices
+            assert e[key] == pytest.approx(o[key], abs=1e-3), (k, key)
+        for key in ("symmetries_discrete", "symmetries_continuous"):
+            assert (key in e) == (key in o), (k, key)
+        # symmetries in millimetres, as given (the eggbox offset 0.232611 mm stays 0.232611)
+        for me, mo in zip(e.get("symmetries_discrete", []), o.get("symmetries_discrete", [])):
+            assert me == pytest.approx(mo, abs=1e-9)
+        assert len(e.get("symmetries_discrete", [])) == len(o.get("symmetries_discrete", []))
+        for se, so in zip(e.get("symmetries_continuous", []), o.get("symmetries_continuous", [])):
+            assert se["axis"] == pytest.approx(so["axis"], abs=1e-9)
+            assert se["offset"] == pytest.approx(so["offset"], abs=1e-9)
+        assert len(e.get("symmetries_continuous", [])) == len(o.get("symmetries_continuous", []))
+
+
+def _write_box_ply_mm(path: Path, ext=(80.0, 50.0, 30.0)) -> None:
+    import trimesh
+
+    trimesh.creation.box(extents=ext).export(path)
+
+
+def test_models_info_symmetries_roundtrip_synthetic(tmp_path):
+    from pipeline.export_bop import write_models
+    from pipeline.objects import load_library
+
+    lib = tmp_path / "models"
+    lib.mkdir()
+    for oid in (3, 4, 5):
+        _write_box_ply_mm(lib / f"obj_{oid:06d}.ply")
+    base = {"diameter": float(np.linalg.norm([80, 50, 30])), "min_x": -40.0, "min_y": -25.0, "min_z": -15.0,
+            "size_x": 80.0, "size_y": 50.0, "size_z": 30.0}
+    original = {
+        "3": dict(base, symmetries_discrete=[[-1, 0, 0, 0.232611, 0, -1, 0, 0.694388, 0, 0, 1, -0.0792063,
+                                              0, 0, 0, 1]]),
+        "4": dict(base, symmetries_continuous=[{"axis": [0, 0, 1], "offset": [1.5, -2.25, 12.0]}]),
+        "5": dict(base),  # no symmetry keys: no symmetry, and none written
+    }
+    (lib / "models_info.json").write_text(json.dumps(original))
+    out = tmp_path / "out"
+    write_models(out, load_library([str(lib)]))
+    exported = json.loads((out / "models" / "models_info.json").read_text())
+    _assert_models_info_roundtrip(original, exported)
+    assert exported["3"]["symmetries_discrete"][0][3] == 0.232611  # mm, not 0.000233
+
+
+@pytest.mark.skipif(not (LMO_MODELS / "models_info.json").is_file(),
+                    reason=f"LM-O models not found at {LMO_MODELS} (shared data absent)")
+def test_models_info_symmetries_roundtrip_lmo(tmp_path):
+    from pipeline.export_bop import write_models
+    from pipeline.objects import load_library
+
+    original = json.loads((LMO_MODELS / "models_info.json").read_text())
+    write_models(tmp_path, load_library([str(LMO_MODELS)]))
+    exported = json.loads((tmp_path / "models" / "models_info.json").read_text())
+    _assert_models_info_roundtrip(original, exported)
+    assert exported["10"]["symmetries_discrete"][0][3] == pytest.approx(0.232611, abs=1e-9)  # the eggbox
+
+
+@pytest.mark.parametrize("sym, words", [
+    ({"symmetries_discrete": [[1, 0, 0, 0]]}, "not 16 numbers"),
+    ({"symmetries_discrete": "none"}, "not a list"),
+    ({"symmetries_continuous": [{"axis": [0, 0, 1]}]}, "needs \"axis\" and \"offset\""),
+    ({"symmetries_continuous": [{"axis": [0, "z", 1], "offset": [0, 0, 0]}]}, "needs \"axis\" and \"offset\""),
+])
+def test_malformed_symmetries_are_a_one_line_error(tmp_path, sym, words):
+    from pipeline.errors import InputError
+    from pipeline.objects import load_library
+
+    _write_box_ply_mm(tmp_path / "obj_000009.ply")
+    (tmp_path / "models_info.json").write_text(json.dumps({"9": dict({"diameter": 100.0}, **sym)}))
+    with pytest.raises(InputError) as ei:
+        load_library([str(tmp_path)])
+    msg = str(ei.value)
+    assert "\n" not in msg and str(tmp_path / "models_info.json") in msg and "object 9" in msg
+    assert words in msg and "fix or remove it" in msg
