@@ -133,7 +133,8 @@ def claim_dataset(ctx: StageContext) -> None:
             raise InputError(f"{root} holds another run's dataset ({MARKER} names run {other!r}, this run is "
                              f"{rid!r}); move that folder away or export into a new run folder")
         return
-    if root.is_dir() and any(root.iterdir()):
+    if root.is_dir() and any(root.iterdir()) and not (ctx.stage_dir / FRAMES_DIR).is_dir():
+        # (files with this run's per-image parts beside them: an export of this run from before the marker)
         raise InputError(f"{root} holds files that this run's export did not write (no {MARKER}); move them "
                          f"away or export into a new run folder")
     atomic_write_json(marker, {"run": rid})

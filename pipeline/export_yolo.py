@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.io import atomic_write_bytes
+from pipeline.io import TMP_MARK, atomic_write_bytes
 from pipeline.seeding import item_rng
 from pipeline.types import ObjectModel
 
@@ -139,7 +139,7 @@ def class_index(objects: list[ObjectModel]) -> dict[int, int]:
 def link_or_copy(src: Path, dst: Path) -> None:
     """``dst`` = the bytes of ``src``: a hard link where the file system allows it, else a copy (atomic)."""
     dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dst.with_name(f".tmp-{os.getpid()}-{dst.name}")
+    tmp = dst.with_name(f"{dst.name}{TMP_MARK}{os.getpid()}")   # the atomic writers' temp name
     try:
         if tmp.exists():
             tmp.unlink()
