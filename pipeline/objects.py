@@ -268,6 +268,9 @@ def _load_bop(d: Path, scale_cfg: float, problems: list[str] | None = None) -> l
             ref = json.loads(ip.read_text(encoding="utf-8"))
         except (OSError, ValueError) as e:
             raise InputError(f"{ip}: cannot be read as JSON ({e}); fix or delete it") from None
+        if not isinstance(ref, dict):
+            raise InputError(f"{ip}: is {type(ref).__name__}, not BOP's {{\"obj_id\": {{diameter, ...}}}} object; "
+                             f"fix or delete it")
     out = []
     for f in files:
         oid = int(BOP_RX.fullmatch(f.name).group(1))
@@ -275,6 +278,9 @@ def _load_bop(d: Path, scale_cfg: float, problems: list[str] | None = None) -> l
         if m is None:
             continue
         entry = ref.get(str(oid), {})
+        if not isinstance(entry, dict):
+            raise InputError(f"{ip} (object {oid}): entry is {entry!r}, not an object with diameter, min_x, ...; "
+                             f"fix or remove it")
         if entry:
             info = dict(m.info)
             info.update(_bop_symmetries(entry, scale, f"{ip} (object {oid})"))

@@ -358,6 +358,7 @@ def test_models_info_symmetries_roundtrip_lmo(tmp_path):
     ({"symmetries_discrete": "none"}, "not a list"),
     ({"symmetries_continuous": [{"axis": [0, 0, 1]}]}, "needs \"axis\" and \"offset\""),
     ({"symmetries_continuous": [{"axis": [0, "z", 1], "offset": [0, 0, 0]}]}, "needs \"axis\" and \"offset\""),
+    ({"symmetries_continuous": ["z"]}, "needs \"axis\" and \"offset\""),
 ])
 def test_malformed_symmetries_are_a_one_line_error(tmp_path, sym, words):
     from pipeline.errors import InputError
@@ -444,3 +445,16 @@ def test_dataset_folder_of_another_run_is_a_clear_error_and_left_as_is(run, tmp_
     del before[f"{export.DATASET}/{export.MARKER}"]
     before = {k: v for k, v in before.items() if not k.startswith(export.FRAMES_DIR + "/")}
     assert after == before   # nothing lost or changed
+
+
+def test_models_info_entry_that_is_not_an_object_is_a_one_line_error(tmp_path):
+    from pipeline.errors import InputError
+    from pipeline.objects import load_library
+
+    _write_box_ply_mm(tmp_path / "obj_000009.ply")
+    (tmp_path / "models_info.json").write_text(json.dumps({"9": [1, 2, 3]}))
+    with pytest.raises(InputError, match=r"models_info.json \(object 9\): entry is \[1, 2, 3\]"):
+        load_library([str(tmp_path)])
+    (tmp_path / "models_info.json").write_text("[]")
+    with pytest.raises(InputError, match="not BOP's"):
+        load_library([str(tmp_path)])
