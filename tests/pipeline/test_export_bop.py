@@ -381,7 +381,7 @@ def _all_files(root: Path) -> dict:
     return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
 
 
-def test_frame_without_composite_is_left_out_of_every_format(run, tmp_path, caplog):
+def test_frame_without_composite_is_left_out_of_every_format(run, tmp_path, caplog, capsys):
     import shutil
 
     from pipeline import report
@@ -418,6 +418,16 @@ def test_frame_without_composite_is_left_out_of_every_format(run, tmp_path, capl
     assert "no composite image" in summary["left_out"]["room/drop0001/f000002"]
     assert report.rejected(rd)["export"] == summary["left_out"]   # what run.json's "rejected" holds
     assert report.images(rd) == 5
+    # the same through the command line: run.json and the console name the frame
+    from pipeline.cli import CONFIG_NAME, main
+    from pipeline.config import dump_config
+
+    (rd / CONFIG_NAME).write_text(dump_config(cfg), encoding="utf-8")
+    capsys.readouterr()
+    assert main(["export", str(rd), "--progress", "off"]) == 0
+    err = capsys.readouterr().err
+    assert "NOT IN DATASET room/drop0001/f000002: no composite image" in err
+    assert json.loads((rd / "run.json").read_text())["rejected"]["export"] == summary["left_out"]
 
 
 def test_dataset_folder_of_another_run_is_a_clear_error_and_left_as_is(run, tmp_path):
