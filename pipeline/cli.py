@@ -185,6 +185,9 @@ def run_stages(run_dir: Path, cfg: Config, names: list[str], args: argparse.Name
         for key, lines in r.problems.items():
             for line in lines:
                 print(f"LEFT OUT {r.stage} {key}: {line}", file=sys.stderr)
+    if any(r.stage == "export" for r in reports):
+        for key, why in report["rejected"].get("export", {}).items():   # frames not in the dataset
+            print(f"NOT IN DATASET {key}: {why}", file=sys.stderr)
     return EXIT_FAILED if failed or problems else EXIT_OK
 
 

@@ -259,12 +259,19 @@ class CompositeConfig:
 class ExportConfig:
     """Dataset writers."""
 
-    formats: tuple[str, ...] = option(("bop", "coco"), "dataset formats to write", choices=("bop", "coco"))
+    formats: tuple[str, ...] = option(("bop", "coco"), "dataset formats to write", choices=("bop", "coco", "yolo"))
     image_format: str = option("jpg", "colour image files", choices=("jpg", "png"))
     chunk_size: int = option(1000, "images per BOP scene folder", min=1)
     depth_scale: float = option(0.1, "BOP depth PNG unit: millimetres per stored uint16 value "
                                 "(0.1 = 0.1 mm steps, up to 6.55 m)", min=0.0, min_exclusive=True)
     jpeg_quality: int = option(95, "JPEG quality of colour images (image_format = 'jpg')", min=1, max=100)
+    yolo_task: str = option("detect", "YOLO labels/: detect = one 'class cx cy w h' line per instance (visible "
+                            "box); segment = one 'class x1 y1 x2 y2 ...' polygon of the visible mask",
+                            choices=("detect", "segment"))
+    yolo_split: str = option("drop", "YOLO train/val split unit: whole drops or whole scan scenes (never single "
+                             "frames: neighbouring frames of a drop are near-duplicates)", choices=("drop", "scene"))
+    yolo_val_fraction: float = option(0.2, "share of the drops (or scenes) that go to YOLO's val split, drawn "
+                                      "from run.seed", min=0.0, max=1.0)
 
 
 @dataclass(frozen=True)

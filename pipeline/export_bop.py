@@ -5,7 +5,7 @@
     DATASET/camera.json                      cx, cy, fx, fy, width, height, depth_scale
     DATASET/models/obj_{obj_id:06d}.ply      binary PLY, millimetres (x y z nx ny nz [red green blue]
                                              [texture_u texture_v]); textures as obj_{obj_id:06d}.png
-    DATASET/models/models_info.json          {obj_id: diameter, min_x.., size_x.. (mm)}
+    DATASET/models/models_info.json          {obj_id: diameter, min_x.., size_x.., symmetries_* (mm)}
     DATASET/train_pbr/{scene_id:06d}/        chunks of ``export.chunk_size`` images
         rgb/{im_id:06d}.jpg|png
         depth/{im_id:06d}.png                uint16; depth in mm = value * depth_scale
@@ -67,10 +67,29 @@ def models_info_mm(obj: ObjectModel) -> dict:
         diameter = _diameter(v)
     out["diameter"] = float(diameter)
     res = {k: _r(val * M_TO_MM) for k, val in out.items()}
-    for key in ("symmetries_discrete", "symmetries_continuous"):
-        if key in info:
-            res[key] = info[key]
+    res.update(symmetries_mm(info))
     return res
+
+
+def symmetries_mm(info: dict) -> dict:
+    """BOP symmetry keys of ``obj.info`` (translations in metres) with translations in millimetres.
+
+    ``symmetries_discrete``: row-major 4x4 matrices, the last column's first three values are the
+    translation; ``symmetries_continuous``: ``axis`` (unit-free) and ``offset`` (a point on the axis).
+    """
+    out = {}
+    if "symmetries_discrete" in info:
+        mats = []
+        for m in info["symmetries_discrete"]:
+            M = np.asarray(m, dtype=np.float64).reshape(4, 4).copy()
+            M[:3, 3] *= M_TO_MM
+            mats.append([_r(x, 9) for x in M[:3].reshape(-1)] + [_r(x, 9) for x in M[3]])
+        out["symmetries_discrete"] = mats
+    if "symmetries_continuous" in info:
+        out["symmetries_continuous"] = [{"axis": [_r(x, 9) for x in s["axis"]],
+                                         "offset": [_r(x * M_TO_MM) for x in s["offset"]]}
+                                        for s in info["symmetries_continuous"]]
+    return out
 
 
 def _diameter(v: np.ndarray) -> float:

@@ -69,20 +69,50 @@ def models_info(vertices: np.ndarray) -> dict:
             "size_z": float(hi[2] - lo[2])}
 
 
-def _bop_symmetries(entry: dict, scale: float) -> dict:
-    """Symmetry keys of a models_info.json entry with translations converted to metres."""
+def _bop_symmetries(entry: dict, scale: float, where: str) -> dict:
+    """Symmetry keys of a models_info.json entry with translations converted to metres.
+
+    A missing key means no symmetry of that kind. A malformed one (not a list; a discrete symmetry that
+    is not 16 numbers, a row-major 4x4 matrix; a continuous one without a 3-number ``axis`` and
+    ``offset``) raises :class:`InputError` naming ``where`` (file and object) and the fix.
+    """
+    fix = ("BOP's format is \"symmetries_discrete\": [[16 numbers, a row-major 4x4 matrix], ...] and "
+           "\"symmetries_continuous\": [{\"axis\": [x, y, z], \"offset\": [x, y, z]}, ...]; fix or remove it")
+
+    def numbers(v, n: int) -> list[float] | None:
+        if not isinstance(v, (list, tuple)) or len(v) != n:
+            return None
+        if not all(isinstance(x, (int, float)) and not isinstance(x, bool) and np.isfinite(x) for x in v):
+            return None
+        return [float(x) for x in v]
+
     out = {}
     if "symmetries_discrete" in entry:
+        sd = entry["symmetries_discrete"]
+        if not isinstance(sd, list):
+            raise InputError(f"{where}: symmetries_discrete is {sd!r}, not a list; {fix}")
         mats = []
-        for m in entry["symmetries_discrete"]:
-            M = np.asarray(m, dtype=np.float64).reshape(4, 4)
+        for m in sd:
+            vals = numbers(m, 16)
+            if vals is None:
+                raise InputError(f"{where}: symmetries_discrete entry {m!r} is not 16 numbers; {fix}")
+            M = np.asarray(vals, dtype=np.float64).reshape(4, 4)
             M[:3, 3] *= scale
             mats.append(M.reshape(-1).tolist())
         out["symmetries_discrete"] = mats
     if "symmetries_continuous" in entry:
-        out["symmetries_continuous"] = [
-            {"axis": list(map(float, s["axis"])), "offset": [float(x) * scale for x in s["offset"]]}
-            for s in entry["symmetries_continuous"]]
+        sc = entry["symmetries_continuous"]
+        if not isinstance(sc, list):
+            raise InputError(f"{where}: symmetries_continuous is {sc!r}, not a list; {fix}")
+        conts = []
+        for c in sc:
+            axis = numbers(c.get("axis"), 3) if isinstance(c, dict) else None
+            offset = numbers(c.get("offset"), 3) if isinstance(c, dict) else None
+            if axis is None or offset is None:
+                raise InputError(f"{where}: symmetries_continuous entry {c!r} needs \"axis\" and \"offset\", "
+                                 f"3 numbers each; {fix}")
+            conts.append({"axis": axis, "offset": [x * scale for x in offset]})
+        out["symmetries_continuous"] = conts
     return out
 
 
@@ -238,6 +268,9 @@ def _load_bop(d: Path, scale_cfg: float, problems: list[str] | None = None) -> l
             ref = json.loads(ip.read_text(encoding="utf-8"))
         except (OSError, ValueError) as e:
             raise InputError(f"{ip}: cannot be read as JSON ({e}); fix or delete it") from None
+        if not isinstance(ref, dict):
+            raise InputError(f"{ip}: is {type(ref).__name__}, not BOP's {{\"obj_id\": {{diameter, ...}}}} object; "
+                             f"fix or delete it")
     out = []
     for f in files:
         oid = int(BOP_RX.fullmatch(f.name).group(1))
@@ -245,9 +278,12 @@ def _load_bop(d: Path, scale_cfg: float, problems: list[str] | None = None) -> l
         if m is None:
             continue
         entry = ref.get(str(oid), {})
+        if not isinstance(entry, dict):
+            raise InputError(f"{ip} (object {oid}): entry is {entry!r}, not an object with diameter, min_x, ...; "
+                             f"fix or remove it")
         if entry:
             info = dict(m.info)
-            info.update(_bop_symmetries(entry, scale))
+            info.update(_bop_symmetries(entry, scale, f"{ip} (object {oid})"))
             d_ref = float(entry.get("diameter", info["diameter"] / scale)) * scale
             if abs(d_ref - info["diameter"]) > 1e-4:
                 warn(f"{f}: diameter {info['diameter'] / scale:.3f} computed from the vertices differs from "

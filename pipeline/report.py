@@ -7,6 +7,7 @@ Everything here is read from what the stages wrote (their own records stay the r
 - ``RUN/select/<scene>/selection.json``: frames not kept, counted by reason (blurred, duplicate, ...);
 - ``RUN/simulate/<scene>/drop<NNNN>.json``: each drop's verdict; the rejected ones by key;
 - ``RUN/raster/summary.json``: frames rejected after the drop (objects out of view, ...) by key;
+- ``RUN/export/summary.json``: frames left out of the dataset (no composite image, failed export item);
 - ``RUN/export/dataset``: the RGB images of the finished dataset.
 """
 
@@ -32,7 +33,8 @@ def rejected(run_dir: str | Path) -> dict:
     Returns
     -------
     ``{"select": {scene: {reason: count}}, "drops": {"<scene>/drop<NNNN>": verdict},
-    "frames": {"<scene>/drop<NNNN>/f<frame>": reason}}``; a stage that has not run yet gives ``{}``.
+    "frames": {"<scene>/drop<NNNN>/f<frame>": reason}, "export": {"<scene>/drop<NNNN>/f<frame>": reason}}``
+    (``export``: frames left out of the dataset); a stage that has not run yet gives ``{}``.
     """
     run = Path(run_dir)
     select: dict[str, dict[str, int]] = {}
@@ -52,7 +54,9 @@ def rejected(run_dir: str | Path) -> dict:
         if doc is not None and doc.get("verdict", "accepted") != "accepted":
             drops[f"{p.parent.name}/{p.stem}"] = str(doc["verdict"])
     raster = _read(run / "raster" / "summary.json") or {}
-    return {"select": select, "drops": drops, "frames": dict(raster.get("rejected_frames", {}))}
+    export = _read(run / "export" / "summary.json") or {}
+    return {"select": select, "drops": drops, "frames": dict(raster.get("rejected_frames", {})),
+            "export": dict(export.get("left_out", {}))}
 
 
 def images(run_dir: str | Path) -> int:

@@ -33,7 +33,7 @@ _HELP: dict[str, str] = {
     "raster": "rasterize depth, labels and masks; compute annotations",
     "trace": "path-trace ambient occlusion and PBR shading of the objects",
     "composite": "fuse the rendered objects into the real photos",
-    "export": "write the dataset in BOP and COCO formats",
+    "export": "write the dataset in BOP, COCO and YOLO formats",
 }
 
 

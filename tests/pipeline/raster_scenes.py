@@ -210,3 +210,31 @@ def run_stage_direct(stage, run_dir, cfg) -> dict:
     if stage.finish is not None:
         stage.finish(ctx, results)
     return results
+
+
+def write_composites(run_dir, skip=()) -> list:
+    """Stand-in for the composite stage's colour output (it needs the path tracer): for each raster frame
+    with status ok, ``RUN/composite/<scene>/drop<NNNN>/f<frame>.png`` = the photo with the visible object
+    pixels painted magenta. Frames ``(scene, drop, frame)`` in ``skip`` get none. Returns the paths."""
+    from pathlib import Path
+
+    import cv2
+
+    from pipeline import export, raster
+    from pipeline.ingest import load_scan, read_color
+
+    run_dir = Path(run_dir)
+    out = []
+    for scene, drop, frame in export.raster_frames(run_dir):
+        if (scene, drop, frame) in skip:
+            continue
+        doc, arr = raster.load_frame(raster.frame_stem(run_dir, scene, drop, frame))
+        rgb = read_color(load_scan(run_dir, scene), frame)
+        rgb = cv2.resize(rgb, (int(doc["width"]), int(doc["height"])), interpolation=cv2.INTER_AREA)
+        obj = arr["labels"] > 0
+        rgb[obj] = (0.3 * rgb[obj] + 0.7 * np.array([200, 40, 200])).astype(np.uint8)
+        p = export.composite_path(run_dir, scene, drop, frame)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(p), np.ascontiguousarray(rgb[..., ::-1]))
+        out.append(p)
+    return out

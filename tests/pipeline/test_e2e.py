@@ -50,6 +50,8 @@ room_spacing = 0.04    # coarser room distance field than the default: the same 
 drops = 2
 objects_per_drop = 4
 max_time = 10.0        # a drop that never settles costs 10 simulated seconds, not 40
+[export]
+formats = ["bop", "coco", "yolo"]   # every writer in the byte-identity checks
 """
 
 
@@ -120,10 +122,13 @@ def test_reference_run_makes_images(reference):
     assert stages["composite"]["done"] >= 3, stages["raster"]
     assert len(_images(out)) >= 3
     assert sorted((out / "export").rglob("scene_gt_coco.json")), "export wrote no COCO file"
+    yolo = out / "export" / "dataset" / "yolo"
+    assert (yolo / "data.yaml").is_file() and len(list(yolo.glob("labels/*/*.txt"))) == len(_images(out))
     # run.json: throughput and what was thrown away, with reasons, agreeing with the stages' own records
     tp = report["throughput"]
     assert tp["images"] == len(_images(out)) and tp["images_per_hour"] > 0
     rej = report["rejected"]
+    assert rej["export"] == json.loads((out / "export" / "summary.json").read_text())["left_out"]
     raster = json.loads((out / "raster" / "summary.json").read_text())
     assert rej["frames"] == raster["rejected_frames"]
     assert all(reason for reason in rej["frames"].values())

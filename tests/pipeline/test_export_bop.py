@@ -30,6 +30,7 @@ def run(tmp_path_factory):
     made = S.make_run(run_dir, shared_rasterizer())
     cfg = build_config({"raster": {"poses": str(made["poses"])}, "export": {"image_format": "png"}})
     r_res = S.run_stage_direct(raster.STAGE, run_dir, cfg)
+    S.write_composites(run_dir)
     e_res = S.run_stage_direct(export.STAGE, run_dir, cfg)
     return dict(made, run_dir=run_dir, cfg=cfg, raster=r_res, export=e_res,
                 root=run_dir / "export" / export.DATASET)
@@ -181,9 +182,11 @@ def test_export_is_deterministic_and_resumable(run, caplog):
         export.finish(ctx, {})
     after = {p: p.read_bytes() for p in files}
     assert after == before
-    assert "real photo without the inserted objects" in caplog.text
+    assert "left out" not in caplog.text
     index = json.loads((run["root"] / export.INDEX).read_text())["images"]
-    assert {e["rgb_source"] for e in index} == {"photo"}
+    assert {e["rgb_source"] for e in index} == {"composite"}
+    summary = json.loads((rd / "export" / export.SUMMARY).read_text())
+    assert summary == {"images": 6, "left_out": {}}
 
 
 def test_chunking_assigns_new_folders():
@@ -249,6 +252,7 @@ def test_export_takes_rgb_and_depth_from_the_compositor(run):
     cv2.imwrite(str(cpath), img[..., ::-1])
     from pipeline.io import atomic_save_npz
 
+    before = cpath.read_bytes()
     atomic_save_npz(dpath, depth=np.full((S.H_RUN, S.W_RUN), 1.5, np.float32))
     try:
         assert export.run_item(ctx, item)["rgb_source"] == "composite"
@@ -257,7 +261,7 @@ def test_export_takes_rgb_and_depth_from_the_compositor(run):
         d = cv2.imread(str(sd / "depth" / f"{im:06d}.png"), cv2.IMREAD_UNCHANGED)
         assert np.all(d == round(1500 / cfg.export.depth_scale))
     finally:
-        cpath.unlink()
+        cpath.write_bytes(before)
         dpath.unlink()
         export.run_item(ctx, item)
 
@@ -278,3 +282,189 @@ def test_chunks_split_into_bop_scene_folders(run, tmp_path):
     assert not (root / export.MERGED_COCO).exists()  # formats = bop only
     assert not (root / "train_pbr" / "000000" / "scene_gt_coco.json").exists()
     assert sorted(p.name for p in (root / "train_pbr" / "000001" / "rgb").iterdir()) == ["000000.png", "000001.png"]
+
+
+# ---------------------------------------------------------------------------------------------------
+# models_info.json round trip: load (mm -> m) then export (m -> mm) gives the original back
+# ---------------------------------------------------------------------------------------------------
+
+LMO_MODELS = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "objects" / "lmo" / "models"
+INFO_NUMBERS = ("diameter", "min_x", "min_y", "min_z", "size_x", "size_y", "size_z")
+
+
+def _assert_models_info_roundtrip(original: dict, exported: dict) -> None:
+    assert sorted(exported, key=int) == sorted(original, key=int)
+    for k, o in original.items():
+        e = exported[k]
+        for key in INFO_NUMBERS:  # recomputed from the float32 PLY vertices
+            assert e[key] == pytest.approx(o[key], abs=1e-3), (k, key)
+        for key in ("symmetries_discrete", "symmetries_continuous"):
+            assert (key in e) == (key in o), (k, key)
+        # symmetries in millimetres, as given (the eggbox offset 0.232611 mm stays 0.232611)
+        for me, mo in zip(e.get("symmetries_discrete", []), o.get("symmetries_discrete", [])):
+            assert me == pytest.approx(mo, abs=1e-9)
+        assert len(e.get("symmetries_discrete", [])) == len(o.get("symmetries_discrete", []))
+        for se, so in zip(e.get("symmetries_continuous", []), o.get("symmetries_continuous", [])):
+            assert se["axis"] == pytest.approx(so["axis"], abs=1e-9)
+            assert se["offset"] == pytest.approx(so["offset"], abs=1e-9)
+        assert len(e.get("symmetries_continuous", [])) == len(o.get("symmetries_continuous", []))
+
+
+def _write_box_ply_mm(path: Path, ext=(80.0, 50.0, 30.0)) -> None:
+    import trimesh
+
+    trimesh.creation.box(extents=ext).export(path)
+
+
+def test_models_info_symmetries_roundtrip_synthetic(tmp_path):
+    from pipeline.export_bop import write_models
+    from pipeline.objects import load_library
+
+    lib = tmp_path / "models"
+    lib.mkdir()
+    for oid in (3, 4, 5):
+        _write_box_ply_mm(lib / f"obj_{oid:06d}.ply")
+    base = {"diameter": float(np.linalg.norm([80, 50, 30])), "min_x": -40.0, "min_y": -25.0, "min_z": -15.0,
+            "size_x": 80.0, "size_y": 50.0, "size_z": 30.0}
+    original = {
+        "3": dict(base, symmetries_discrete=[[-1, 0, 0, 0.232611, 0, -1, 0, 0.694388, 0, 0, 1, -0.0792063,
+                                              0, 0, 0, 1]]),
+        "4": dict(base, symmetries_continuous=[{"axis": [0, 0, 1], "offset": [1.5, -2.25, 12.0]}]),
+        "5": dict(base),  # no symmetry keys: no symmetry, and none written
+    }
+    (lib / "models_info.json").write_text(json.dumps(original))
+    out = tmp_path / "out"
+    write_models(out, load_library([str(lib)]))
+    exported = json.loads((out / "models" / "models_info.json").read_text())
+    _assert_models_info_roundtrip(original, exported)
+    assert exported["3"]["symmetries_discrete"][0][3] == 0.232611  # mm, not 0.000233
+
+
+@pytest.mark.skipif(not (LMO_MODELS / "models_info.json").is_file(),
+                    reason=f"LM-O models not found at {LMO_MODELS} (shared data absent)")
+def test_models_info_symmetries_roundtrip_lmo(tmp_path):
+    from pipeline.export_bop import write_models
+    from pipeline.objects import load_library
+
+    original = json.loads((LMO_MODELS / "models_info.json").read_text())
+    write_models(tmp_path, load_library([str(LMO_MODELS)]))
+    exported = json.loads((tmp_path / "models" / "models_info.json").read_text())
+    _assert_models_info_roundtrip(original, exported)
+    assert exported["10"]["symmetries_discrete"][0][3] == pytest.approx(0.232611, abs=1e-9)  # the eggbox
+
+
+@pytest.mark.parametrize("sym, words", [
+    ({"symmetries_discrete": [[1, 0, 0, 0]]}, "not 16 numbers"),
+    ({"symmetries_discrete": "none"}, "not a list"),
+    ({"symmetries_continuous": [{"axis": [0, 0, 1]}]}, "needs \"axis\" and \"offset\""),
+    ({"symmetries_continuous": [{"axis": [0, "z", 1], "offset": [0, 0, 0]}]}, "needs \"axis\" and \"offset\""),
+    ({"symmetries_continuous": ["z"]}, "needs \"axis\" and \"offset\""),
+])
+def test_malformed_symmetries_are_a_one_line_error(tmp_path, sym, words):
+    from pipeline.errors import InputError
+    from pipeline.objects import load_library
+
+    _write_box_ply_mm(tmp_path / "obj_000009.ply")
+    (tmp_path / "models_info.json").write_text(json.dumps({"9": dict({"diameter": 100.0}, **sym)}))
+    with pytest.raises(InputError) as ei:
+        load_library([str(tmp_path)])
+    msg = str(ei.value)
+    assert "\n" not in msg and str(tmp_path / "models_info.json") in msg and "object 9" in msg
+    assert words in msg and "fix or remove it" in msg
+
+
+# ---------------------------------------------------------------------------------------------------
+# A frame without its composite is left out of every format; another run's dataset is not touched
+# ---------------------------------------------------------------------------------------------------
+
+def _all_files(root: Path) -> dict:
+    return {p.relative_to(root).as_posix(): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_frame_without_composite_is_left_out_of_every_format(run, tmp_path, caplog, capsys):
+    import shutil
+
+    from pipeline import report
+
+    rd = tmp_path / "RUN"
+    shutil.copytree(run["run_dir"], rd, ignore=shutil.ignore_patterns("export"))
+    cfg = build_config({"raster": {"poses": str(run["poses"])},
+                        "export": {"image_format": "png", "formats": ["bop", "coco", "yolo"]}})
+    S.run_stage_direct(export.STAGE, rd, cfg)
+    root = rd / "export" / export.DATASET
+    sd = root / "train_pbr" / "000000"
+    assert len(json.loads((sd / "scene_gt.json").read_text())) == 6
+    # drop 1, frame 2 (the last image) loses its composite: as if its composite item had failed
+    export.composite_path(rd, "room", 1, 2).unlink()
+    with caplog.at_level(logging.WARNING, logger="pipeline.export"):
+        S.run_stage_direct(export.STAGE, rd, cfg)
+    assert "LEFT OUT" in caplog.text and "room/drop0001/f000002" in caplog.text
+    for name in ("scene_gt.json", "scene_gt_info.json", "scene_camera.json"):
+        assert sorted(map(int, json.loads((sd / name).read_text()))) == list(range(5)), name
+    assert sorted(p.name for p in (sd / "rgb").iterdir()) == [f"{i:06d}.png" for i in range(5)]
+    assert not list((sd / "mask").glob("000005_*")) and not list((sd / "depth").glob("000005*"))
+    for coco_file in (sd / "scene_gt_coco.json", sd / "scene_gt_coco_modal.json", root / export.MERGED_COCO,
+                      root / export.MERGED_COCO_MODAL):
+        doc = json.loads(coco_file.read_text())
+        assert len(doc["images"]) == 5 and {a["image_id"] for a in doc["annotations"]} <= {0, 1, 2, 3, 4}
+    index = json.loads((root / export.INDEX).read_text())["images"]
+    assert (1, 2) not in {(e["drop"], e["frame"]) for e in index} and len(index) == 5
+    yolo_imgs = sorted(p.name for p in (root / "yolo" / "images").rglob("*.png"))
+    yolo_labels = sorted(p.name for p in (root / "yolo" / "labels").rglob("*.txt"))
+    assert yolo_imgs == [f"000000_{i:06d}.png" for i in range(5)]
+    assert yolo_labels == [f"000000_{i:06d}.txt" for i in range(5)]
+    summary = json.loads((rd / "export" / export.SUMMARY).read_text())
+    assert summary["images"] == 5 and list(summary["left_out"]) == ["room/drop0001/f000002"]
+    assert "no composite image" in summary["left_out"]["room/drop0001/f000002"]
+    assert report.rejected(rd)["export"] == summary["left_out"]   # what run.json's "rejected" holds
+    assert report.images(rd) == 5
+    # the same through the command line: run.json and the console name the frame
+    from pipeline.cli import CONFIG_NAME, main
+    from pipeline.config import dump_config
+
+    (rd / CONFIG_NAME).write_text(dump_config(cfg), encoding="utf-8")
+    capsys.readouterr()
+    assert main(["export", str(rd), "--progress", "off"]) == 0
+    err = capsys.readouterr().err
+    assert "NOT IN DATASET room/drop0001/f000002: no composite image" in err
+    assert json.loads((rd / "run.json").read_text())["rejected"]["export"] == summary["left_out"]
+
+
+def test_dataset_folder_of_another_run_is_a_clear_error_and_left_as_is(run, tmp_path):
+    import shutil
+
+    from pipeline.errors import InputError
+
+    rd = tmp_path / "RUN"
+    shutil.copytree(run["run_dir"], rd)
+    root = rd / "export" / export.DATASET
+    before = _all_files(rd / "export")
+    other = build_config({"run": {"seed": 7}, "raster": {"poses": str(run["poses"])},
+                          "export": {"image_format": "png"}})
+    ctx = export.StageContext(run_dir=rd, cfg=other, stage="export")
+    with pytest.raises(InputError) as ei:
+        export.plan(ctx)
+    msg = str(ei.value)
+    assert "\n" not in msg and str(root) in msg and "another run" in msg
+    # no marker but files (e.g. a dataset copied in by hand): also refused
+    (root / export.MARKER).unlink()
+    shutil.rmtree(rd / "export" / export.FRAMES_DIR)   # (with them: this run's export from before the marker)
+    with pytest.raises(InputError, match="did not write"):
+        export.plan(export.StageContext(run_dir=rd, cfg=run["cfg"], stage="export"))
+    after = _all_files(rd / "export")
+    del before[f"{export.DATASET}/{export.MARKER}"]
+    before = {k: v for k, v in before.items() if not k.startswith(export.FRAMES_DIR + "/")}
+    assert after == before   # nothing lost or changed
+
+
+def test_models_info_entry_that_is_not_an_object_is_a_one_line_error(tmp_path):
+    from pipeline.errors import InputError
+    from pipeline.objects import load_library
+
+    _write_box_ply_mm(tmp_path / "obj_000009.ply")
+    (tmp_path / "models_info.json").write_text(json.dumps({"9": [1, 2, 3]}))
+    with pytest.raises(InputError, match=r"models_info.json \(object 9\): entry is \[1, 2, 3\]"):
+        load_library([str(tmp_path)])
+    (tmp_path / "models_info.json").write_text("[]")
+    with pytest.raises(InputError, match="not BOP's"):
+        load_library([str(tmp_path)])

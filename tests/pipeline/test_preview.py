@@ -23,6 +23,7 @@ def run_dir(tmp_path_factory):
     made = S.make_run(rd, shared_rasterizer())
     cfg = build_config({"raster": {"poses": str(made["poses"])}, "export": {"image_format": "png"}})
     S.run_stage_direct(raster.STAGE, rd, cfg)
+    S.write_composites(rd)
     S.run_stage_direct(export.STAGE, rd, cfg)
     return rd
 
