@@ -141,8 +141,8 @@ def test_world_frame_of_a_scan_is_honoured(tmp_path, room):
     cube = _cube(floor + d, 0.2)
     cube_w = replace(cube, vertices=cube.vertices @ Twc[:3, :3].T + Twc[:3, 3],
                      normals=(cube.normals @ Twc[:3, :3].T).astype(np.float32))
-    a = render_traced_view(tr.room, T, K, 32, 24, exposure=tr.exposure, spp=2, seed=1, extra_meshes=[cube])
-    b = render_traced_view(tr.room, Twc @ T, K, 32, 24, exposure=tr.exposure, spp=2, seed=1,
+    a = render_traced_view(tr.room, T, K, 32, 24, exposure=tr.exposure, spp=16, seed=1, extra_meshes=[cube])
+    b = render_traced_view(tr.room, Twc @ T, K, 32, 24, exposure=tr.exposure, spp=16, seed=1,
                            extra_meshes=[cube_w], T_world_from_canonical=Twc)
     assert np.abs(a.object_coverage - b.object_coverage).max() <= 0.5
     assert abs(float(a.radiance.mean()) - float(b.radiance.mean())) < 0.02 * float(a.radiance.mean())
