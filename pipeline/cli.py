@@ -40,6 +40,8 @@ EXTRA_COMMANDS: dict[str, tuple[str, str]] = {
     "make-scan": ("pipeline.synthscan.cli", "write a procedural room scan with ground truth in a real scan layout"),
     "preview": ("pipeline.preview_cli", "contact sheet of a dataset: images with masks, boxes and pose axes drawn "
                                     "from the written annotations"),
+    "report": ("pipeline.report_cli", "write RUN/report.html: images, timings, rejections with reasons, "
+                                  "annotated samples, frame selection (run writes it too)"),
 }
 
 PACKAGES = ("numpy", "open3d", "pymeshlab", "manifold3d", "embreex", "pyrender", "PyOpenGL",
@@ -173,6 +175,7 @@ def run_stages(run_dir: Path, cfg: Config, names: list[str], args: argparse.Name
               "throughput": run_report.throughput(run_dir, stage_docs),
               "rejected": run_report.rejected(run_dir), "stages": stage_docs}
     atomic_write_json(run_dir / REPORT_NAME, report)
+    html_report = _write_html_report(run_dir)
     msg = (f"scansynth: {done} item(s) done, {skipped} skipped (already finished), {failed} failed, "
            f"{problems} input(s) left out, {per:.2f} s/item, {total:.1f} s total")
     if placeholders:
@@ -188,7 +191,21 @@ def run_stages(run_dir: Path, cfg: Config, names: list[str], args: argparse.Name
     if any(r.stage == "export" for r in reports):
         for key, why in report["rejected"].get("export", {}).items():   # frames not in the dataset
             print(f"NOT IN DATASET {key}: {why}", file=sys.stderr)
+    if html_report is not None and not args.quiet:
+        print(f"report: {html_report}", file=sys.stderr)
     return EXIT_FAILED if failed or problems else EXIT_OK
+
+
+def _write_html_report(run_dir: Path) -> Path | None:
+    """RUN/report.html after every invocation; a report that cannot be drawn costs only itself."""
+    from pipeline.report_html import write_report
+
+    try:
+        return write_report(run_dir)
+    except Exception as e:  # noqa: BLE001 - the run's own results are written; the page is extra
+        log.error("could not write %s/report.html (%s: %s); the run's results are unaffected; "
+                  "retry with 'scansynth report %s'", run_dir, type(e).__name__, e, run_dir)
+        return None
 
 
 def _run_one(run_dir: Path, cfg: Config, stage, progress_on: bool):

@@ -15,9 +15,11 @@ built-in shapes (or small generated files), so nothing outside the repository is
 
 from __future__ import annotations
 
+import html
 import json
 import os
 import random
+import re
 import shutil
 import signal
 import subprocess
@@ -30,9 +32,11 @@ import pytest
 
 from pipeline.runner import ITEMS_DIR
 
+ROOT = Path(__file__).resolve().parents[2]
+
 pytestmark = pytest.mark.slow
 
-VOLATILE = {"run.json"}     # timings of the last invocation: legitimately differs between runs
+VOLATILE = {"run.json", "report.html"}  # timings of the last invocation: legitimately differ between runs
 
 CONFIG = """
 [run]
@@ -136,6 +140,49 @@ def test_reference_run_makes_images(reference):
     assert len(rej["drops"]) == sim["drops"] - sim["verdicts"].get("accepted", 0)
     selection = json.loads(next((out / "select").glob("*/selection.json")).read_text())
     assert sum(next(iter(rej["select"].values())).values()) == sum(not f["kept"] for f in selection["frames"])
+
+
+def test_run_report_opens_in_chromium_with_every_image(reference, tmp_path):
+    """`run` wrote RUN/report.html: self-contained, every image loads in headless Chromium, no error."""
+    from tests.pipeline import browser
+
+    _, out, _ = reference
+    page = out / "report.html"
+    assert page.is_file(), "scansynth run did not write report.html"
+    text = page.read_text(encoding="utf-8")
+    assert not re.search(r"""(src|href)=["']?(https?:)?//""", text), "the page fetches from the network"
+    images = _images(out)
+    for needle in ("Seconds per stage", "Sample images", "What was thrown away", "Frame selection",
+                   f"<b>{len(images)}</b><span>images in the dataset"):
+        assert needle in text, needle
+    # every rejected frame is on the page with its reason
+    report = json.loads((out / "run.json").read_text())
+    for key, why in report["rejected"]["frames"].items():
+        assert key in text and html.escape(why, quote=True) in text, key
+    if not browser.available():
+        pytest.skip(f"Chromium is not installed ({browser.CHROMIUM}); bin/setup --test installs Debian's "
+                    f"chromium package")
+    artifacts = ROOT / ".cache" / "test-artifacts"
+    artifacts.mkdir(parents=True, exist_ok=True)
+    shot = artifacts / "report.png"
+    r = browser.check_page(page, tmp_path / "profile", screenshot=shot)
+    assert r["images"] == 1 + min(12, len(images)), r          # the chart and the samples
+    assert r["broken"] == [] and r["errors"] == [] and r["console_errors"] == [], r
+    full = [out / href for href in r["links"]]
+    assert len(full) == min(12, len(images)) and all(p.is_file() and p.stat().st_size > 0 for p in full), full
+    assert shot.is_file() and shot.stat().st_size > 10_000
+
+
+def test_report_command(reference, tmp_path, capsys):
+    """`scansynth report RUN` rewrites the page; a folder that is not a run is one line, exit 2."""
+    from pipeline.cli import main
+
+    _, out, _ = reference
+    assert main(["report", str(out), "-q"]) == 0
+    assert (out / "report.html").is_file()
+    assert main(["report", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a scansynth run folder" in err[0] and str(tmp_path) in err[0]
 
 
 def test_repeated_kill9_then_resume_is_byte_identical(reference, tmp_path):

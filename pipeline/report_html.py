@@ -1,0 +1,298 @@
+"""``RUN/report.html``: one page that shows what a run made and what it threw away, without opening JSON.
+
+Written by ``scansynth report RUN`` and at the end of every ``scansynth run``. Everything on it is read
+from the files the stages wrote (nothing is recomputed): ``run.json`` (timings, failures, left-out
+inputs, rejections), ``select/<scene>/selection.json`` (frame selection with scores),
+``ingest/<scene>/scan.json`` (frames read and kept, registration, up), ``prep``'s object record (what
+each model took to become a solid) and the BOP dataset (sample images with the visible masks, boxes and
+pose axes drawn from the written annotations by :func:`pipeline.preview.draw_annotations`).
+
+The page is self-contained: no server, nothing fetched from the network; the chart and the thumbnails
+are embedded as ``data:`` URIs, and each thumbnail links to its full-size annotated image in
+``RUN/report/`` (a relative link, so the run folder can be moved or copied as a whole). The timings make
+the page differ from run to run; the annotated images do not.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import UserError
+from pipeline.io import atomic_write_bytes, encode_image
+
+log = logging.getLogger(__name__)
+
+REPORT_NAME = "report.html"
+ASSETS_DIR = "report"          # RUN/report/: full-size annotated sample images
+MAX_SAMPLES = 12
+THUMB_WIDTH = 320
+
+STYLE = """
+body{font:14px/1.45 system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0;background:#f6f7f9;color:#1d2330}
+header{background:#1d2330;color:#fff;padding:18px 28px}header h1{margin:0;font-size:22px}
+header p{margin:4px 0 0;color:#b8c0cf;font-size:13px}
+main{padding:8px 28px 40px;max-width:1400px}
+section{background:#fff;border:1px solid #e1e4ea;border-radius:8px;margin:18px 0;padding:14px 18px}
+h2{font-size:17px;margin:2px 0 10px}h3{font-size:15px;margin:14px 0 6px}
+.tiles{display:flex;flex-wrap:wrap;gap:12px}
+.stat{background:#f0f3f8;border-radius:6px;padding:8px 14px;min-width:120px}
+.stat b{display:block;font-size:22px}.stat span{color:#5b6475;font-size:12px}
+table{border-collapse:collapse;font-size:13px;margin:4px 0}
+td,th{border-bottom:1px solid #e6e8ee;padding:3px 10px 3px 0;text-align:left;vertical-align:top}
+th{color:#5b6475;font-weight:600}td.num{text-align:right;font-variant-numeric:tabular-nums}
+.grid{display:grid;grid-template-columns:repeat(auto-fill,minmax(300px,1fr));gap:12px}
+.grid figure{margin:0}.grid img{width:100%;border-radius:4px;display:block}
+figcaption{font-size:12px;color:#5b6475;margin-top:3px}
+.ok{color:#1b7f3b}.bad{color:#b3261e}.muted{color:#7a8294}
+details summary{cursor:pointer;color:#33507a}
+"""
+
+
+def _e(x) -> str:
+    return html.escape(str(x), quote=True)
+
+
+def _read(path: Path):
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+
+
+def _data_uri(data: bytes, mime: str) -> str:
+    return f"data:{mime};base64," + base64.b64encode(data).decode("ascii")
+
+
+def _table(header: list[str], rows: list[list], numeric: set[int] = frozenset()) -> str:
+    head = "".join(f"<th>{_e(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f"<td class=num>{_e(c)}</td>" if i in numeric else f"<td>{_e(c)}</td>"
+                                    for i, c in enumerate(r)) + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def stage_chart(stages: list[dict]) -> bytes | None:
+    """PNG bar chart of seconds per stage (``run.json`` stage entries), or None with no stage."""
+    if not stages:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    names = [s["stage"] for s in stages]
+    secs = [float(s.get("seconds", 0.0)) for s in stages]
+    fig = Figure(figsize=(7.0, 0.42 * len(names) + 0.9), dpi=100)
+    ax = fig.add_subplot(111)
+    y = np.arange(len(names))[::-1]
+    ax.barh(y, secs, color="#4c78a8")
+    ax.set_yticks(y, names)
+    for yi, s, st in zip(y, secs, stages):
+        n = int(st.get("done", 0)) + int(st.get("skipped", 0))
+        ax.text(s, yi, f"  {s:.1f} s ({n} item{'s' if n != 1 else ''})", va="center", fontsize=8)
+    ax.set_xlabel("seconds this invocation (wall)")
+    ax.set_xlim(0, max(secs + [1e-3]) * 1.35)
+    ax.spines[["top", "right"]].set_visible(False)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", metadata={"Software": None})
+    return buf.getvalue()
+
+
+def _samples(run: Path, max_samples: int) -> tuple[str, list[str]]:
+    """HTML of the sample grid and the notes on what could not be drawn."""
+    import cv2
+
+    from pipeline.preview import _images, draw_annotations
+
+    notes: list[str] = []
+    dataset = run / "export" / "dataset"
+    if not (dataset / "train_pbr").is_dir():
+        return "<p class=muted>No dataset yet (the export stage has not run).</p>", notes
+    images = _images(dataset)
+    if not images:
+        return "<p class=muted>The dataset has no images: every frame was rejected (see below).</p>", notes
+    pick = np.unique(np.linspace(0, len(images) - 1, min(max_samples, len(images))).round().astype(int))
+    models_info = _read(dataset / "models" / "models_info.json") or {}
+    cache: dict[Path, tuple] = {}
+    figs = []
+    for idx in pick:
+        scene_dir, im_id = images[idx]
+        if scene_dir not in cache:
+            cache[scene_dir] = tuple(_read(scene_dir / n) or {} for n in
+                                     ("scene_gt.json", "scene_gt_info.json", "scene_camera.json"))
+        gt, info, cam = cache[scene_dir]
+        key = str(im_id)
+        rgb_path = next((p for p in (scene_dir / "rgb" / f"{im_id:06d}{ext}" for ext in (".jpg", ".png"))
+                         if p.is_file()), None)
+        bgr = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR) if rgb_path is not None else None
+        if bgr is None or key not in cam:
+            notes.append(f"{scene_dir.name}/{im_id:06d}: image or camera missing from the dataset")
+            continue
+        full = draw_annotations(bgr[..., ::-1], scene_dir, im_id, gt.get(key, []), info.get(key, []),
+                                cam[key], models_info)
+        name = f"{scene_dir.parent.name}_{scene_dir.name}_{im_id:06d}.jpg"
+        rel = f"{ASSETS_DIR}/{name}"
+        atomic_write_bytes(run / rel, encode_image(run / rel, full, jpeg_quality=92))
+        h = int(round(full.shape[0] * THUMB_WIDTH / full.shape[1]))
+        thumb = cv2.resize(full, (THUMB_WIDTH, h), interpolation=cv2.INTER_AREA)
+        ok, jpg = cv2.imencode(".jpg", np.ascontiguousarray(thumb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 85])
+        objs = ", ".join(str(g["obj_id"]) for g in gt.get(key, []))
+        visib = [float(i.get("visib_fract", 0.0)) for i in info.get(key, [])]
+        cap = (f"{scene_dir.name}/{im_id:06d}: {len(gt.get(key, []))} objects ({objs})"
+               + (f", visible {min(visib):.0%}-{max(visib):.0%}" if visib else ""))
+        figs.append(f'<figure><a href="{_e(rel)}"><img src="{_data_uri(jpg.tobytes(), "image/jpeg")}" '
+                    f'alt="{_e(cap)}"></a><figcaption>{_e(cap)}</figcaption></figure>')
+    text = (f"<p>{len(figs)} of {len(images)} images, evenly spread; outlines: visible masks "
+            f"(<code>mask_visib</code>), rectangles: <code>bbox_visib</code>, axes: the pose "
+            f"(x red, y green, z blue, half the model's diameter). Click an image for full size.</p>")
+    return text + '<div class="grid">' + "".join(figs) + "</div>", notes
+
+
+def _rejections(report: dict, run: Path) -> str:
+    from pipeline import report as run_report
+
+    rej = report.get("rejected") or run_report.rejected(run)
+    parts = []
+    fails = [(s["stage"], k, v) for s in report.get("stages", []) for k, v in s.get("failures", {}).items()]
+    probs = [(s["stage"], k, line) for s in report.get("stages", [])
+             for k, lines in s.get("input_problems", {}).items() for line in lines]
+    parts.append("<h3>Failed items</h3>" + (_table(["stage", "item", "error"], [list(f) for f in fails])
+                                            if fails else "<p class=ok>None.</p>"))
+    parts.append("<h3>Inputs left out</h3>" + (_table(["stage", "item", "what and why"], [list(p) for p in probs])
+                                               if probs else "<p class=ok>None.</p>"))
+    sel = rej.get("select", {})
+    rows = [[scene, reason, n] for scene, d in sel.items() for reason, n in d.items()]
+    parts.append("<h3>Frames not selected</h3>" + (_table(["scene", "reason", "frames"], rows, {2}) if rows
+                                                   else "<p class=ok>None.</p>"))
+    drops = rej.get("drops", {})
+    parts.append(f"<h3>Rejected drops ({len(drops)})</h3>" + (
+        _table(["drop", "verdict"], [[k, v] for k, v in drops.items()]) if drops else "<p class=ok>None.</p>"))
+    frames = rej.get("frames", {})
+    parts.append(f"<h3>Frames rejected after the drop ({len(frames)})</h3>" + (
+        _table(["frame", "reason"], [[k, v] for k, v in frames.items()]) if frames else "<p class=ok>None.</p>"))
+    left = rej.get("export", {})
+    parts.append(f"<h3>Frames left out of the dataset ({len(left)})</h3>" + (
+        _table(["frame", "reason"], [[k, v] for k, v in left.items()]) if left else "<p class=ok>None.</p>"))
+    return "".join(parts)
+
+
+def _scans(run: Path) -> str:
+    out = []
+    scenes = sorted(p.parent.name for p in (run / "ingest").glob("*/scan.json"))
+    if not scenes:
+        return "<p class=muted>No scan ingested yet.</p>"
+    for scene in scenes:
+        doc = _read(run / "ingest" / scene / "scan.json") or {}
+        meta = doc.get("meta", {})
+        facts = [["format", doc.get("format", "?")],
+                 ["frames read / kept after reading", f"{meta.get('frames_read', '?')} / {meta.get('frames_kept', '?')}"],
+                 ["image size", f"{doc.get('width', '?')} x {doc.get('height', '?')}"],
+                 ["room mesh", f"{meta.get('mesh', '?')} ({meta.get('mesh_faces', '?')} faces)"],
+                 ["up", meta.get("up_source", "?")],
+                 ["colour-depth registration", meta.get("registration", "not recorded")]]
+        for k, v in (meta.get("registration_figures") or {}).items():   # colour camera estimation
+            facts.append([f"registration: {k}", v])
+        skipped = {k: v for k, v in (meta.get("skipped") or {}).items() if v}
+        if skipped:
+            facts.append(["frames skipped on reading", ", ".join(f"{k}: {v}" for k, v in skipped.items())])
+        for w in meta.get("warnings", []):
+            facts.append(["warning", w])
+        block = f"<h3>{_e(scene)}</h3>" + _table(["", ""], facts)
+        sel = _read(run / "select" / scene / "selection.json")
+        if sel:
+            frames = sel.get("frames", [])
+            kept = sum(1 for f in frames if f.get("kept"))
+            keys = ["relative", "blur_effect", "brightness", "contrast", "angle_deg", "travel_m"]
+            rows = [[f.get("frame_id"), "kept" if f.get("kept") else "dropped", f.get("reason", "")]
+                    + [f"{float(f.get('scores', {}).get(k, float('nan'))):.3f}" for k in keys] for f in frames]
+            block += (f"<details><summary>Frame selection: {kept} of {len(frames)} frames kept "
+                      f"(method {_e(sel.get('method', '?'))})</summary>"
+                      + _table(["frame", "", "reason", *keys], rows, set(range(3, 3 + len(keys))))
+                      + "</details>")
+        out.append(block)
+    return "".join(out)
+
+
+def _objects(run: Path) -> str:
+    lib = _read(run / "ingest" / "objects" / "library.json")
+    prep = (_read(run / "prep" / "_items" / "objects.done.json") or {}).get("objects", {})
+    if not lib and not prep:
+        return "<p class=muted>No object library ingested yet.</p>"
+    entries = lib.get("objects", lib) if isinstance(lib, dict) else (lib or [])
+    names = {}
+    if isinstance(entries, list):
+        names = {str(o.get("obj_id")): o.get("name", "") for o in entries if isinstance(o, dict)}
+    rows = [[k, names.get(k, ""), f"{float(v.get('mass', 0.0)) * 1000:.1f}",
+             "convex hull (could not be closed)" if v.get("fallback_hull") else "solid",
+             v.get("repair", "")] for k, v in sorted(prep.items(), key=lambda kv: int(kv[0]))]
+    return _table(["id", "name", "mass g", "mass properties from", "what it took"], rows, {2})
+
+
+def render(run_dir: str | Path, *, max_samples: int = MAX_SAMPLES) -> str:
+    """The report page of ``run_dir`` as HTML text (writes the full-size sample images beside it)."""
+    run = Path(run_dir)
+    report = _read(run / "run.json") or {}
+    tp = report.get("throughput", {})
+    stages = report.get("stages", [])
+    from pipeline import report as run_report
+
+    n_images = tp.get("images", run_report.images(run))
+    rate = tp.get("images_per_hour")
+    stats = [(n_images, "images in the dataset"),
+             (f"{rate:.0f}" if rate else "-", "images per hour" if rate else "images/hour (resumed run: not measured)"),
+             (f"{float(report.get('seconds', 0.0)):.0f} s" if report else "-", "wall time, last invocation"),
+             (report.get("failed", "-"), "failed items"),
+             (report.get("input_problems", "-"), "inputs left out")]
+    tiles = "".join(f'<div class="stat"><b>{_e(v)}</b><span>{_e(k)}</span></div>' for v, k in stats)
+    chart = stage_chart(stages)
+    chart_html = (f'<img src="{_data_uri(chart, "image/png")}" alt="seconds per stage">' if chart
+                  else "<p class=muted>No stage has run yet (run.json is missing).</p>")
+    samples_html, notes = _samples(run, max_samples)
+    if notes:
+        samples_html += "<p class=bad>" + "<br>".join(_e(n) for n in notes) + "</p>"
+    seed = ""
+    cfg = run / "config.toml"
+    if cfg.is_file():
+        import tomllib
+
+        try:
+            c = tomllib.loads(cfg.read_text(encoding="utf-8"))
+            seed = (f"seed {c.get('run', {}).get('seed', '?')}; scans "
+                    f"{', '.join(map(str, c.get('scan', {}).get('paths', [])))}; objects "
+                    f"{', '.join(map(str, c.get('objects', {}).get('paths', [])))}")
+        except (OSError, ValueError):
+            seed = "config.toml could not be read"
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>scansynth run report: {_e(run.name)}</title>
+<meta name="viewport" content="width=device-width, initial-scale=1"><style>{STYLE}</style></head>
+<body><header><h1>scansynth run report</h1><p>{_e(run.resolve())}<br>{_e(seed)}</p></header><main>
+<section><h2>Summary</h2><div class="tiles">{tiles}</div></section>
+<section><h2>Seconds per stage</h2>{chart_html}</section>
+<section><h2>Sample images</h2>{samples_html}</section>
+<section><h2>What was thrown away, and why</h2>{_rejections(report, run)}</section>
+<section><h2>Scans</h2>{_scans(run)}</section>
+<section><h2>Objects</h2>{_objects(run)}</section>
+<section><h2>Lighting</h2><p class=muted>Recovered room lights are not estimated yet; this panel shows
+them once light recovery lands.</p></section>
+</main></body></html>
+"""
+
+
+def write_report(run_dir: str | Path, *, max_samples: int = MAX_SAMPLES) -> Path:
+    """Write ``RUN/report.html`` (and ``RUN/report/``); returns its path."""
+    run = Path(run_dir)
+    if not run.is_dir():
+        raise UserError(f"{run}: no such run folder; give the --out folder of 'scansynth run'")
+    if not (run / "config.toml").is_file():
+        raise UserError(f"{run}: not a scansynth run folder (no config.toml); give the --out folder of "
+                        f"'scansynth run'")
+    out = run / REPORT_NAME
+    atomic_write_bytes(out, render(run, max_samples=max_samples).encode("utf-8"))
+    return out
