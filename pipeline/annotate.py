@@ -263,6 +263,78 @@ def compose_depth(labels: np.ndarray, depth: np.ndarray, background: np.ndarray 
     return np.where(labels > 0, depth, bg).astype(np.float32)
 
 
+def written_depth(labels: np.ndarray, depth: np.ndarray, real_depth: np.ndarray | None,
+                  room_depth: np.ndarray | None, hidden_by_room: np.ndarray | None,
+                  fill_room: bool) -> np.ndarray:
+    """The dataset's depth image, metres (0 = invalid): what ``depth/`` holds and visibility is judged on.
+
+    The objects' depth where they are visible; elsewhere the real sensor depth where it is valid; where it
+    is not, the room mesh's rendered depth at the pixels where the room hides an object (so the depth
+    says why the object is not visible there, and bop_toolkit's rule, which counts missing depth as
+    visible, agrees with ``mask_visib``), and everywhere else when ``fill_room`` (``composite.depth_fill
+    = "room"``, or a scan without sensor depth).
+    """
+    d = np.nan_to_num(np.asarray(depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    room = None if room_depth is None else np.nan_to_num(np.asarray(room_depth, np.float32), nan=0.0,
+                                                         posinf=0.0, neginf=0.0)
+    bg = np.zeros_like(d) if real_depth is None else np.nan_to_num(
+        np.asarray(real_depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    if room is not None:
+        fill = np.ones(bg.shape, bool) if fill_room else (
+            np.zeros(bg.shape, bool) if hidden_by_room is None else np.asarray(hidden_by_room, bool))
+        bg = np.where((bg <= 0) & fill, room, bg)
+    return np.maximum(compose_depth(np.asarray(labels), d, bg), 0.0).astype(np.float32)
+
+
+def quantize_depth(depth_m: np.ndarray, depth_scale_mm: float) -> np.ndarray:
+    """``depth_m`` as the uint16 PNG stores it and a reader gets it back, metres (0 = invalid).
+
+    ``round(depth_mm / depth_scale)``; values of 0 or beyond 65535 are stored as 0 (invalid), exactly as
+    :func:`pipeline.export_bop.depth_png` writes them.
+    """
+    v = np.round(np.asarray(depth_m, np.float64) * 1000.0 / depth_scale_mm)
+    ok = (v > 0) & (v <= np.iinfo(np.uint16).max)
+    return np.where(ok, v * depth_scale_mm / 1000.0, 0.0).astype(np.float32)
+
+
+def ray_length_factor(K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H, W) float64 distance / z-depth along each pixel centre's ray (bop_toolkit's
+    ``misc.depth_im_to_dist_im_fast``, which turns depth into distance from the camera centre)."""
+    u = (np.arange(width, dtype=np.float64) - K[0, 2]) / K[0, 0]
+    v = (np.arange(height, dtype=np.float64) - K[1, 2]) / K[1, 1]
+    return np.sqrt(1.0 + u[None, :] ** 2 + v[:, None] ** 2)
+
+
+def bop_visib_masks(crops: list, shape: tuple[int, int], n: int, depth_written: np.ndarray,
+                    K: np.ndarray, delta: float) -> np.ndarray:
+    """(N, H, W) bool ``mask_visib`` by bop_toolkit's rule (``visibility.estimate_visib_mask_gt``,
+    ``bop19``), as its ``calc_gt_info.py`` applies it: an object pixel is visible where its distance from
+    the camera is at most ``delta`` metres beyond the written depth's, or where the written depth is
+    missing (0).
+
+    Parameters
+    ----------
+    crops : list of N ``(depth (h, w) float32, x0, y0)`` or None
+        Each instance's own depth (alone, amodal) over its window; 0 = not covered.
+    shape : (H, W)
+    depth_written : (H, W) float32 metres, as read back from the dataset (:func:`quantize_depth`).
+    """
+    h, w = shape
+    out = np.zeros((n, h, w), bool)
+    f = ray_length_factor(np.asarray(K, np.float64), w, h)
+    dist_w = depth_written.astype(np.float64) * f
+    for i, c in enumerate(crops):
+        if c is None:
+            continue
+        d, x0, y0 = c
+        hh, ww = d.shape
+        fi = f[y0:y0 + hh, x0:x0 + ww]
+        dw = dist_w[y0:y0 + hh, x0:x0 + ww]
+        dist_i = d.astype(np.float64) * fi
+        out[i, y0:y0 + hh, x0:x0 + ww] = (d > 0) & ((dist_i - dw <= delta) | (dw == 0))
+    return out
+
+
 def bbox_xywh(mask: np.ndarray, x_off: int = 0, y_off: int = 0) -> tuple[int, int, int, int] | None:
     """``(x, y, w, h)`` of the True pixels of ``mask`` shifted by the mask's origin; None if empty."""
     rows = np.flatnonzero(mask.any(axis=1))
@@ -301,7 +373,7 @@ def unpack_masks(packed: np.ndarray, width: int) -> np.ndarray:
 
 def instance_annotations(*, obj_ids: np.ndarray, R_m2c: np.ndarray, t_m2c: np.ndarray,
                          amodal: np.ndarray, px_outside: np.ndarray, box_outside: list,
-                         labels: np.ndarray, valid_depth: np.ndarray, visib_threshold: float,
+                         visib: np.ndarray, valid_depth: np.ndarray, visib_threshold: float,
                          rects: list | None = None) -> list[dict]:
     """BOP ``scene_gt`` + ``scene_gt_info`` entries of every instance (metres; mm only in the writer).
 
@@ -316,10 +388,10 @@ def instance_annotations(*, obj_ids: np.ndarray, R_m2c: np.ndarray, t_m2c: np.nd
         Silhouette pixels outside the image (on the BOP canvas).
     box_outside : list of N ``(x, y, w, h)`` or None
         Box of the silhouette part outside the image, image pixel coordinates.
-    labels : (H, W) uint16
-        Visible instance labels.
+    visib : (N, H, W) bool
+        Each instance's visible mask (``mask_visib``, :func:`bop_visib_masks`).
     valid_depth : (H, W) bool
-        Pixels with a valid depth in the written depth image.
+        Pixels with a valid depth in the written depth image (as read back).
     visib_threshold : float
         An instance counts as visible (``"visible": true``) from this visible fraction on.
     rects : list of N ``(x0, y0, x1, y1)`` or None, optional
@@ -333,14 +405,14 @@ def instance_annotations(*, obj_ids: np.ndarray, R_m2c: np.ndarray, t_m2c: np.nd
         px_count_visib, visib_fract, visible``.
     """
     out = []
-    h, w = labels.shape
+    h, w = valid_depth.shape
     for i in range(len(obj_ids)):
         r = (0, 0, w, h) if rects is None else rects[i]
         if r is None:
             r = (0, 0, 0, 0)
         x0, y0, x1, y1 = r
         m = amodal[i, y0:y1, x0:x1]
-        vis = labels[y0:y1, x0:x1] == i + 1
+        vis = visib[i, y0:y1, x0:x1]
         px_in = int(m.sum())
         px_all = px_in + int(px_outside[i])
         px_visib = int(vis.sum())

@@ -28,8 +28,9 @@ annotations are the raster stage's and do not depend on the mode.
 
 Outputs per (scene, drop, frame) item, where the export stage reads them:
 ``RUN/composite/<scene>/drop<NNNN>/f<frame:06d>.png`` (RGB uint8) and ``..._depth.npz`` with ``depth``
-(H, W) float32 metres: the real depth with the objects' depth where they are visible (0 = invalid;
-``composite.depth_fill = "room"`` fills invalid real depth from the room mesh's rendered depth).
+(H, W) float32 metres: the raster stage's ``written_depth`` (the real depth with the objects' depth
+where they are visible, the room's depth where the room hides an object and the sensor has none, 0 =
+invalid; ``composite.depth_fill = "room"`` fills all invalid real depth from the room mesh's depth).
 """
 
 from __future__ import annotations
@@ -364,9 +365,9 @@ def plan(ctx: StageContext) -> list[Item]:
 
 
 def run_item(ctx: StageContext, item: Item) -> dict:
-    from pipeline.ingest import load_scan, read_color, read_depth
+    from pipeline.ingest import load_scan, read_color
     from pipeline.io import atomic_save_npz, atomic_write_image, load_npz, read_json
-    from pipeline.raster import frame_stem, resize_nearest, scene_depth_path
+    from pipeline.raster import frame_stem
     from pipeline.trace.stage import load_trace
 
     cfg = ctx.cfg.composite
@@ -376,6 +377,9 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     if doc.get("status") != "ok" or not stem.with_suffix(".npz").is_file():
         raise InputError(f"{stem}.json: frame status is {doc.get('status')!r}, not ok; re-run raster")
     arr = load_npz(stem.with_suffix(".npz"))
+    if "written_depth" not in arr:
+        raise InputError(f"{stem}.npz has no written_depth: it was written by an older scansynth; delete "
+                         f"{stem.parent.parent.parent} and run again from the raster stage")
     labels = arr["labels"]
     h, w = labels.shape
     tr = load_trace(ctx.run_dir, scene, drop, frame)
@@ -406,12 +410,8 @@ def run_item(ctx: StageContext, item: Item) -> dict:
         info = {"exposure": round(exposure, 4), "blur_sigma": res.blur_sigma, "photo_noise": round(res.photo_noise, 3),
                 "noise_added": round(res.noise_added, 3),
                 "photo_edge_sigma": None if np.isnan(res.photo_edge_sigma) else round(res.photo_edge_sigma, 4)}
-    real = resize_nearest(read_depth(scan, frame), w, h) if scan.depth_paths[frame] else None
-    room = None
-    sd = scene_depth_path(ctx.run_dir, scene, frame)
-    if (cfg.depth_fill == "room" or real is None) and sd.is_file():
-        room = load_npz(sd)["depth"]
-    depth = composite_depth(labels, arr["depth"], real, room)
+    # The raster stage composed the dataset's depth (and judged visibility on it); write the same.
+    depth = arr["written_depth"]
     atomic_write_image(image_path(ctx.run_dir, scene, drop, frame), image)
     atomic_save_npz(depth_path(ctx.run_dir, scene, drop, frame), depth=depth)
     return {"mode": cfg.mode, **info}

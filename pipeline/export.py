@@ -18,8 +18,9 @@ Colour images come from ``RUN/composite/<scene>/drop<NNNN>/f<frame:06d>.png``. A
 composite item failed, or the compositor has not run) is **left out of every format**: the photo without
 the inserted objects, with their annotations, would be a mislabelled training sample. Left-out frames
 are listed with the reason in ``RUN/export/summary.json`` (and so in ``run.json``'s ``rejected``) and
-counted in the log. Depth comes from the compositor's ``f<frame:06d>_depth.npz``, else it is composed
-here: the objects' depth where they are visible, the real depth (or the room's rendered depth) elsewhere.
+counted in the log. Depth comes from the compositor's ``f<frame:06d>_depth.npz``, else from the raster
+stage's ``written_depth`` (the same array: raster composes it and judges ``mask_visib`` on it, see
+:func:`pipeline.annotate.written_depth`); ``mask_visib`` is raster's ``visib`` (bop_toolkit's rule).
 
 The dataset folder holds one run's export only: ``dataset/scansynth_run.json`` names the run (a hash of
 its config); an export into a dataset folder with another run's marker, or with files and no marker,
@@ -34,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import annotate, export_bop, export_coco, export_yolo
+from pipeline import export_bop, export_coco, export_yolo
 from pipeline.errors import InputError
 from pipeline.io import atomic_write_json, dumps_json, read_json
 from pipeline.runner import Item, Stage, StageContext
@@ -169,9 +170,8 @@ def scene_dir(run_dir: Path, bop_scene: int) -> Path:
 def run_item(ctx: StageContext, item: Item) -> dict:
     import cv2
 
-    from pipeline.ingest import load_scan, read_depth
-    from pipeline.raster import frame_stem, load_frame, resize_nearest, scene_depth_path
     from pipeline.io import load_npz
+    from pipeline.raster import frame_stem, load_frame
 
     s = Slot(**item.data)
     cfg = ctx.cfg.export
@@ -179,7 +179,6 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     if arr is None:
         raise RuntimeError(f"raster frame {s.scene}/{s.drop}/{s.frame} is not ok: {doc.get('reason')}")
     w, h = int(doc["width"]), int(doc["height"])
-    scan = load_scan(ctx.run_dir, s.scene)
     comp = composite_path(ctx.run_dir, s.scene, s.drop, s.frame)
     if not comp.is_file():
         raise RuntimeError(f"{comp} is missing (it was there when the export was planned); run the export again")
@@ -192,21 +191,17 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     comp_depth = composite_depth_path(ctx.run_dir, s.scene, s.drop, s.frame)
     depth = load_npz(comp_depth)["depth"] if comp_depth.is_file() else None
     if depth is None or depth.shape != (h, w):
-        if scan.depth_paths[s.frame]:
-            background = resize_nearest(read_depth(scan, s.frame), w, h)
-        else:
-            background = load_npz(scene_depth_path(ctx.run_dir, s.scene, s.frame))["depth"]
-        depth = annotate.compose_depth(arr["labels"], arr["depth"], background)
+        depth = arr["written_depth"]   # the depth raster judged visibility on (the compositor writes it too)
     sd = scene_dir(ctx.run_dir, s.bop_scene)
-    export_bop.write_image_files(sd, s.im_id, rgb=rgb, depth_m=depth, amodal=arr["amodal"], labels=arr["labels"],
+    export_bop.write_image_files(sd, s.im_id, rgb=rgb, depth_m=depth, amodal=arr["amodal"], visib=arr["visib"],
                                  ext=cfg.image_format, depth_scale=cfg.depth_scale, jpeg_quality=cfg.jpeg_quality)
     K = np.asarray(doc["K"], dtype=np.float64)
     part = {"scene_camera": export_bop.scene_camera_entry(K, np.asarray(doc["T_c2w"]), cfg.depth_scale),
             "scene_gt": export_bop.scene_gt_entries(doc["instances"]),
             "scene_gt_info": export_bop.scene_gt_info_entries(doc["instances"]),
-            "coco": (export_coco.frame_annotations(doc["instances"], arr["labels"], arr["amodal"])
+            "coco": (export_coco.frame_annotations(doc["instances"], arr["visib"], arr["amodal"])
                      if "coco" in cfg.formats else []),
-            "yolo": export_yolo.frame_labels(doc["instances"], arr["labels"]) if "yolo" in cfg.formats else [],
+            "yolo": export_yolo.frame_labels(doc["instances"], arr["visib"]) if "yolo" in cfg.formats else [],
             "width": w, "height": h, "rgb_source": source, "frame_id": int(doc["frame_id"]), "key": item.key}
     atomic_write_json(ctx.stage_dir / FRAMES_DIR / f"{s.bop_scene:06d}" / f"{s.im_id:06d}.json", part)
     return {"rgb_source": source, "instances": len(doc["instances"])}

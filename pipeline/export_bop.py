@@ -229,7 +229,7 @@ def image_paths(scene_dir: str | Path, im_id: int, n_inst: int, ext: str) -> dic
 
 
 def write_image_files(scene_dir: str | Path, im_id: int, *, rgb: np.ndarray, depth_m: np.ndarray,
-                      amodal: np.ndarray, labels: np.ndarray, ext: str, depth_scale: float,
+                      amodal: np.ndarray, visib: np.ndarray, ext: str, depth_scale: float,
                       jpeg_quality: int = 95) -> dict:
     """Write rgb, depth, mask and mask_visib files of one image (each atomically); return their paths.
 
@@ -238,7 +238,7 @@ def write_image_files(scene_dir: str | Path, im_id: int, *, rgb: np.ndarray, dep
     rgb : (H, W, 3) uint8
     depth_m : (H, W) float32, metres, 0 = invalid
     amodal : (N, H, W) bool
-    labels : (H, W) uint16, visible instance index + 1
+    visib : (N, H, W) bool, visible masks (``mask_visib``)
     ext : "jpg" | "png"
     """
     p = image_paths(scene_dir, im_id, len(amodal), ext)
@@ -246,7 +246,7 @@ def write_image_files(scene_dir: str | Path, im_id: int, *, rgb: np.ndarray, dep
     atomic_write_image(p["depth"], depth_png(depth_m, depth_scale))
     for g in range(len(amodal)):
         atomic_write_image(p["mask"][g], amodal[g].astype(np.uint8) * 255)
-        atomic_write_image(p["mask_visib"][g], (labels == g + 1).astype(np.uint8) * 255)
+        atomic_write_image(p["mask_visib"][g], visib[g].astype(np.uint8) * 255)
     return p
 
 

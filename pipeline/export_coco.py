@@ -67,7 +67,7 @@ def image_entry(image_id: int, file_name: str, width: int, height: int) -> dict:
             "license": 1, "coco_url": "", "flickr_url": ""}
 
 
-def frame_annotations(instances: list[dict], labels: np.ndarray, amodal: np.ndarray) -> list[dict]:
+def frame_annotations(instances: list[dict], visib: np.ndarray, amodal: np.ndarray) -> list[dict]:
     """COCO annotations of one image, without ``id``/``image_id`` (assigned when files are merged).
 
     Each carries both boxes, ``bbox_amodal`` and ``bbox_modal``; :func:`variant` picks one as ``bbox``.
@@ -76,14 +76,14 @@ def frame_annotations(instances: list[dict], labels: np.ndarray, amodal: np.ndar
     ----------
     instances : list of dict
         Raster annotations (:func:`pipeline.annotate.instance_annotations`), in ``gt_id`` order.
-    labels : (H, W) uint16
-        Visible instance labels (index + 1): ``mask_visib``.
+    visib : (N, H, W) bool
+        Visible masks: ``mask_visib``.
     amodal : (N, H, W) bool
         Full silhouettes inside the image: ``mask``.
     """
     out = []
     for g, a in enumerate(instances):
-        m = labels == g + 1
+        m = visib[g]
         area = int(m.sum())
         if area < 1 or not amodal[g].any():   # bop_toolkit skips both
             continue

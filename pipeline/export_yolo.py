@@ -97,13 +97,13 @@ def mask_polygon(mask: np.ndarray) -> list[list[int]]:
     return poly.tolist()
 
 
-def frame_labels(instances: list[dict], labels: np.ndarray) -> list[dict]:
+def frame_labels(instances: list[dict], visib: np.ndarray) -> list[dict]:
     """Per visible instance: ``obj_id``, modal ``bbox`` (COCO pixel box) and visible-mask ``polygon``."""
     from pipeline.export_coco import bbox
 
     out = []
     for g, a in enumerate(instances):
-        m = labels == g + 1
+        m = visib[g]
         if not m.any():
             continue
         out.append({"obj_id": int(a["obj_id"]), "bbox": bbox(m), "polygon": mask_polygon(m)})

@@ -52,7 +52,7 @@ from pipeline.config import RasterConfig
 from pipeline.errors import InputError
 from pipeline.io import atomic_save_npz, atomic_write_json, load_npz, read_json
 from pipeline.runner import Item, Stage, StageContext
-from pipeline.tolerances import POSE_ORTHONORMAL_TOL
+from pipeline.tolerances import BOP_VISIB_DELTA_M, POSE_ORTHONORMAL_TOL
 from pipeline.types import ObjectModel, Placement, Scan
 
 log = logging.getLogger(__name__)
@@ -182,13 +182,15 @@ class FrameResult:
     labels: np.ndarray | None = None   # (H, W) uint16, visible instance index + 1
     amodal: np.ndarray | None = None   # (N, H, W) bool, silhouettes inside the image
     front: np.ndarray | None = None    # (H, W) uint16, nearest instance index + 1 before room occlusion
+    visib: np.ndarray | None = None    # (N, H, W) bool, mask_visib (bop_toolkit's rule on written_depth)
+    written_depth: np.ndarray | None = None  # (H, W) float32 metres: the dataset's depth (0 = invalid)
     stats: dict = field(default_factory=dict)  # pixel counts: objects, occluded by room / real depth
 
 
 def render_frame(rasterizer, *, K: np.ndarray, T_c2w: np.ndarray, width: int, height: int,
                  placement: Placement, mesh_keys: dict[int, str],
                  scene_depth: Callable[[], np.ndarray], real_depth: Callable[[], np.ndarray | None],
-                 cfg: RasterConfig) -> FrameResult:
+                 cfg: RasterConfig, depth_scale: float = 1.0, fill_room: bool = False) -> FrameResult:
     """All raster passes and annotations of one frame.
 
     Parameters
@@ -208,8 +210,15 @@ def render_frame(rasterizer, *, K: np.ndarray, T_c2w: np.ndarray, width: int, he
         object passes (so the cache is filled only for frames that need it).
     real_depth : callable
         Returns the real sensor depth (H, W) float32 metres at the render resolution (0 = invalid), or
-        None when the frame has none; called only with ``cfg.real_depth_fusion``.
+        None when the frame has none. It occludes objects only with ``cfg.real_depth_fusion``; it is
+        always part of the written depth.
     cfg : RasterConfig
+    depth_scale : float
+        ``export.depth_scale`` (mm per PNG unit): visibility is judged on the depth as the dataset
+        stores it (:func:`pipeline.annotate.quantize_depth`).
+    fill_room : bool
+        ``composite.depth_fill == "room"``: the written depth takes the room's depth wherever the sensor
+        has none (see :func:`pipeline.annotate.written_depth`).
     """
     K = np.asarray(K, dtype=np.float64)
     T_c2w = np.asarray(T_c2w, dtype=np.float64)
@@ -255,7 +264,8 @@ def render_frame(rasterizer, *, K: np.ndarray, T_c2w: np.ndarray, width: int, he
                                 f"(< raster.min_visible_area = {cfg.min_visible_area:.2%})", object_px=obj_px)
 
     room = scene_depth()
-    real = real_depth() if cfg.real_depth_fusion else None
+    sensor = real_depth()
+    real = sensor if cfg.real_depth_fusion else None
     vis = annotate.visible_labels(depth, front, room, real, tol_abs=cfg.fusion_tol_abs,
                                   tol_rel=cfg.fusion_tol_rel)
     labels = vis.labels
@@ -264,13 +274,18 @@ def render_frame(rasterizer, *, K: np.ndarray, T_c2w: np.ndarray, width: int, he
     if stats["visible_px"] / area < cfg.min_visible_area:
         return reject("visible", f"visible object pixels cover {stats['visible_px'] / area:.2%} of the image "
                                  f"(< raster.min_visible_area = {cfg.min_visible_area:.2%})", **stats)
-    background = real if real is not None else room
-    valid = (labels > 0) | (background > 0)
+    # The dataset's depth, then visibility and gt_info by bop_toolkit's rule on that depth as it is
+    # stored (quantised to the PNG's units): mask_visib, visib_fract and depth/ agree by construction.
+    written = annotate.written_depth(labels, depth, sensor, room, vis.occluded_by_room,
+                                     fill_room or sensor is None)
+    stored = annotate.quantize_depth(written, depth_scale)
+    visib = annotate.bop_visib_masks(crops, (height, width), n, stored, K, BOP_VISIB_DELTA_M)
     inst = annotate.instance_annotations(obj_ids=placement.obj_ids, R_m2c=R_m2c, t_m2c=t_m2c, amodal=amodal,
-                                         px_outside=px_outside, box_outside=box_outside, labels=labels,
-                                         valid_depth=valid, visib_threshold=cfg.visib_threshold, rects=rects)
+                                         px_outside=px_outside, box_outside=box_outside, visib=visib,
+                                         valid_depth=stored > 0, visib_threshold=cfg.visib_threshold,
+                                         rects=rects)
     return FrameResult(status="ok", reason="", check="", instances=inst, depth=depth, labels=labels,
-                       amodal=amodal, front=front, stats=stats, **base)
+                       amodal=amodal, front=front, stats=stats, visib=visib, written_depth=written, **base)
 
 
 def frame_doc(result: FrameResult, *, scene: str, drop: int, frame: int, frame_id: int,
@@ -289,22 +304,29 @@ def save_frame(stem: str | Path, result: FrameResult, doc: dict) -> None:
     stem = Path(stem)
     if result.status == "ok":
         atomic_save_npz(stem.with_suffix(".npz"), depth=result.depth, labels=result.labels,
-                        amodal=annotate.pack_masks(result.amodal))
+                        amodal=annotate.pack_masks(result.amodal), visib=annotate.pack_masks(result.visib),
+                        written_depth=result.written_depth)
     atomic_write_json(stem.with_suffix(".json"), doc)
 
 
 def load_frame(stem: str | Path) -> tuple[dict, dict | None]:
     """``(annotation doc, arrays)`` of a saved frame; arrays is None for a rejected frame.
 
-    The arrays dict has ``depth`` (H, W) float32, ``labels`` (H, W) uint16 and ``amodal`` (N, H, W) bool
-    (unpacked).
+    The arrays dict has ``depth`` (H, W) float32, ``labels`` (H, W) uint16, ``amodal`` and ``visib``
+    (N, H, W) bool (unpacked) and ``written_depth`` (H, W) float32 metres (the dataset's depth).
     """
     stem = Path(stem)
     doc = read_json(stem.with_suffix(".json"))
     if doc["status"] != "ok":
         return doc, None
     a = load_npz(stem.with_suffix(".npz"))
+    missing = sorted({"visib", "written_depth"} - set(a))
+    if missing:
+        raise InputError(f"{stem}.npz has no {' or '.join(missing)}: it was written by an older scansynth "
+                         f"(before visibility followed bop_toolkit's rule); delete {stem.parent.parent.parent} "
+                         f"and run again from the raster stage")
     a["amodal"] = annotate.unpack_masks(a["amodal"], int(doc["width"]))
+    a["visib"] = annotate.unpack_masks(a["visib"], int(doc["width"]))
     return doc, a
 
 
@@ -553,7 +575,8 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     res = render_frame(rasterizer, K=K, T_c2w=scan.T_c2w[frame], width=w, height=h, placement=placement,
                        mesh_keys=keys,
                        scene_depth=lambda: cached_scene_depth(ctx.run_dir, scan, frame, K, w, h, rasterizer),
-                       real_depth=lambda: cached_real_depth(ctx.run_dir, scan, frame, w, h), cfg=cfg)
+                       real_depth=lambda: cached_real_depth(ctx.run_dir, scan, frame, w, h), cfg=cfg,
+                       depth_scale=ctx.cfg.export.depth_scale, fill_room=ctx.cfg.composite.depth_fill == "room")
     doc = frame_doc(res, scene=scene, drop=drop, frame=frame, frame_id=int(scan.frame_ids[frame]),
                     fusion=cfg.real_depth_fusion)
     save_frame(frame_stem(ctx.run_dir, scene, drop, frame), res, doc)

@@ -54,3 +54,10 @@ TRACE_RAY_EPS_M = 1e-4
 # them, so traced photos come out brighter in bright open views (measured 1.08-1.38 on seed 0 at
 # 160x120) and the band is wide; a missing exposure or a lost light would fall far outside it.
 SYNTHSCAN_TRACED_RASTER_MEAN_RATIO = (0.8, 1.6)
+
+# Visibility (issue 18): an object pixel is in mask_visib where its distance from the camera is at most
+# this far beyond the dataset's depth (or the depth is missing): bop_toolkit's estimate_visib_mask_gt
+# ("bop19") with the delta its calc_gt_info.py uses (15 mm), so bop_toolkit recomputes the same masks
+# from what we write. It is below raster.fusion_tol_abs (20 mm), so an object the real depth hides stays
+# hidden; resting objects' contact rims within 15 mm of the surface count as visible, as in BOP.
+BOP_VISIB_DELTA_M = 0.015

@@ -115,6 +115,10 @@ def test_pack_unpack_roundtrip(w):
     assert np.array_equal(annotate.unpack_masks(p, w), m)
 
 
+def _masks(labels: np.ndarray, n: int) -> np.ndarray:
+    return np.stack([labels == i + 1 for i in range(n)])
+
+
 def test_instance_annotations_follow_bop_definitions():
     h, w = 10, 10
     amodal = np.zeros((2, h, w), bool)
@@ -126,7 +130,7 @@ def test_instance_annotations_follow_bop_definitions():
     valid[5, :] = False
     anns = annotate.instance_annotations(
         obj_ids=np.array([7, 9]), R_m2c=np.repeat(np.eye(3)[None], 2, 0), t_m2c=np.zeros((2, 3)),
-        amodal=amodal, px_outside=np.array([4, 0]), box_outside=[(-2, 2, 2, 2), None], labels=labels,
+        amodal=amodal, px_outside=np.array([4, 0]), box_outside=[(-2, 2, 2, 2), None], visib=_masks(labels, 2),
         valid_depth=valid, visib_threshold=0.3)
     a, b = anns
     assert a["obj_id"] == 7 and a["px_count_all"] == 20 and a["px_count_visib"] == 8
@@ -137,7 +141,8 @@ def test_instance_annotations_follow_bop_definitions():
     assert b["bbox_obj"] == [-1, -1, -1, -1] and b["bbox_visib"] == [-1, -1, -1, -1]
     anns = annotate.instance_annotations(
         obj_ids=np.array([7]), R_m2c=np.eye(3)[None], t_m2c=np.zeros((1, 3)), amodal=amodal[:1],
-        px_outside=np.array([4]), box_outside=[None], labels=labels, valid_depth=valid, visib_threshold=0.5)
+        px_outside=np.array([4]), box_outside=[None], visib=_masks(labels, 1), valid_depth=valid,
+        visib_threshold=0.5)
     assert anns[0]["visible"] is False
 
 
@@ -147,3 +152,38 @@ def test_compose_depth():
     bg = np.array([[2.0, 3.0]], np.float32)
     assert annotate.compose_depth(labels, depth, bg).tolist() == [[2.0, 1.5]]
     assert annotate.compose_depth(labels, depth, None).tolist() == [[0.0, 1.5]]
+
+
+def test_written_depth_fills_from_the_room_only_where_the_room_hides_an_object():
+    labels = np.array([[1, 0, 0, 0]], np.uint16)
+    obj = np.array([[1.0, 2.0, 0.0, 0.0]], np.float32)           # px 1: an object the room hides
+    real = np.array([[0.0, 0.0, 0.0, 3.0]], np.float32)          # the sensor saw only px 3
+    room = np.array([[2.5, 1.5, 2.2, 2.9]], np.float32)
+    hidden = np.array([[False, True, False, False]])
+    d = annotate.written_depth(labels, obj, real, room, hidden, fill_room=False)
+    assert d.tolist() == [[1.0, 1.5, 0.0, 3.0]]
+    d = annotate.written_depth(labels, obj, real, room, hidden, fill_room=True)
+    assert d.tolist() == [[1.0, 1.5, pytest.approx(2.2), 3.0]]
+
+
+def test_quantize_depth_is_what_the_png_stores():
+    """At depth_scale 0.1 mm (BOP's train_pbr) uint16 ends at 6.5535 m: beyond, the PNG stores 0."""
+    from pipeline.export_bop import depth_png
+
+    d = np.array([[0.0, 0.00004, 1.23444, 6.5535, 6.5536, 7.0]], np.float32)
+    q = annotate.quantize_depth(d, 0.1)
+    assert q[0].tolist() == pytest.approx([0.0, 0.0, 1.2344, 6.5535, 0.0, 0.0], abs=1e-6)
+    assert np.array_equal(np.round(q * 10000).astype(np.uint16), depth_png(d, 0.1))
+    assert annotate.quantize_depth(d, 1.0)[0].tolist() == pytest.approx([0, 0, 1.234, 6.554, 6.554, 7.0], abs=1e-6)
+
+
+def test_bop_visib_masks_follow_bop19():
+    """Visible within delta behind the written depth, or where the depth is missing; distances, not z."""
+    K = np.array([[100.0, 0, 0.5], [0, 100.0, 0.5], [0, 0, 1]])
+    obj = np.full((2, 2), 1.0, np.float32)
+    written = np.array([[1.0, 0.99], [0.98, 0.0]], np.float32)    # 0, 10 mm, 20 mm in front; missing
+    m = annotate.bop_visib_masks([(obj, 0, 0)], (2, 2), 1, written, K, 0.015)
+    assert m[0].tolist() == [[True, True], [False, True]]
+    m = annotate.bop_visib_masks([None], (2, 2), 1, written, K, 0.015)
+    assert not m.any()
+

@@ -298,8 +298,10 @@ def _make_run(run: Path, *, with_trace: bool = True, exposure: float | None = No
     save_scan(scene_dir, scan)
     pbr, cov, labels, sr = _frame()
     stem = run / "raster" / "room" / "drop0000" / "f000000"
-    atomic_save_npz(stem.with_suffix(".npz"), labels=labels, depth=np.where(labels > 0, 1.5, 0).astype(np.float32),
-                    amodal=annotate.pack_masks((labels > 0)[None]))
+    depth = np.where(labels > 0, 1.5, 0).astype(np.float32)
+    atomic_save_npz(stem.with_suffix(".npz"), labels=labels, depth=depth,
+                    amodal=annotate.pack_masks((labels > 0)[None]), visib=annotate.pack_masks((labels > 0)[None]),
+                    written_depth=depth)
     atomic_write_json(stem.with_suffix(".json"), {"status": "ok", "scene": "room", "drop": 0, "frame": 0,
                                                   "width": W, "height": H, "K": K.tolist(),
                                                   "T_c2w": np.eye(4).tolist(), "instances": []})

@@ -195,7 +195,7 @@ def test_invisible_instances_have_no_annotation_and_ignore_is_bop_toolkits_thres
     amodal[2, 0, 0:2] = True
     inst = [{"obj_id": 3, "visib_fract": 0.0}, {"obj_id": 4, "visib_fract": 0.9},
             {"obj_id": 5, "visib_fract": 0.0999}]
-    anns = frame_annotations(inst, labels, amodal)
+    anns = frame_annotations(inst, np.stack([labels == g + 1 for g in range(3)]), amodal)
     assert [a["category_id"] for a in anns] == [4, 5] and anns[0]["area"] == 6
     assert anns[0]["bbox_amodal"] == [0, 0, 4, 3] and anns[0]["bbox_modal"] == [1, 1, 3, 2]
     assert [a["ignore"] for a in anns] == [False, True]   # 10 %, not raster.visib_threshold

@@ -193,7 +193,8 @@ def _make_run(run: Path, *, obj_id_in_frame: int = 1, photo_level: int | None = 
     labels = np.where(h.hit, sc.tri_inst[np.maximum(h.prim, 0)], 0).astype(np.uint16).reshape(H, W)
     T_w2c = np.linalg.inv(T)
     stem = run / "raster" / "room" / "drop0000" / "f000000"
-    atomic_save_npz(stem.with_suffix(".npz"), labels=labels, depth=np.zeros((H, W), np.float32))
+    atomic_save_npz(stem.with_suffix(".npz"), labels=labels, depth=np.zeros((H, W), np.float32),
+                    written_depth=np.zeros((H, W), np.float32))
     atomic_write_json(stem.with_suffix(".json"), {
         "status": "ok", "width": W, "height": H, "K": K.tolist(), "T_c2w": T.tolist(),
         "instances": [{"inst_id": 0, "obj_id": obj_id_in_frame, "R_m2c": T_w2c[:3, :3].tolist(),
