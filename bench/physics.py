@@ -45,7 +45,7 @@ def _room(cache: Path) -> tuple[dict, np.ndarray, dict]:
         room = room_distance_grid(v, f, spacing=0.02, cameras=scan.T_c2w[:, :3, 3])
         t_grid = time.perf_counter() - t0
         np.savez(npz, **room)
-    from pipeline.physics.collide import RoomMesh
+    from pipeline.physics.roommesh import RoomMesh
 
     v, f, _ = load_room_mesh(scan)
     room["room_mesh"] = RoomMesh(v, f)   # built once, shared by every drop (the stage builds it per drop)

@@ -39,6 +39,7 @@ from pipeline.config import Config, build_config, config_to_dict
 from pipeline.errors import ConfigError, UserError
 from pipeline.io import atomic_write_json, read_json
 from pipeline.seeding import item_rng
+from pipeline.stages import get_stage
 
 log = logging.getLogger(__name__)
 
@@ -154,8 +155,6 @@ def execute_item(run_dir: str, cfg_dict: dict, stage_ref: str, item: Item) -> tu
     Module-level so a worker process can run it (pickled by reference). ``stage_ref`` is a registry
     name or ``"module:attribute"``.
     """
-    from pipeline.stages import get_stage
-
     t0 = time.perf_counter()
     log_warnings()
     run = Path(run_dir)

@@ -172,7 +172,7 @@ def _cached_room(stamp: tuple[str, int, int], up: tuple[float, float, float]):
     once per worker process and room file (loading the grid, building the mesh's BVH and finding the
     surface cost ~0.5 s, about a whole drop). Callers must not modify the returned dict."""
     from pipeline.io import load_npz
-    from pipeline.physics.collide import RoomMesh
+    from pipeline.physics.roommesh import RoomMesh
     from pipeline.physics.drop import room_info
 
     room = load_npz(stamp[0])

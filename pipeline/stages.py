@@ -1,70 +1,58 @@
-"""The ordered list of pipeline stages and where each one lives.
+"""The pipeline's stages, in order: one table of name, where the stage lives and what it does.
 
-Stage modules are imported only when their stage runs (heavy backends stay out of start-up). A stage
-that is not built yet is a placeholder: it runs nothing and says so loudly in the log and in the
-summary, naming the issue that builds it.
+Stage modules are imported only when their stage runs (heavy backends stay out of start-up). This module
+imports nothing of the project at load time, so :mod:`pipeline.runner` and the CLI can use it freely.
 """
 
 from __future__ import annotations
 
 import importlib
+from typing import TYPE_CHECKING, NamedTuple
 
-from pipeline.runner import Stage
-
-# name -> "module:attribute" of its Stage, or a placeholder note
-STAGE_ORDER: tuple[str, ...] = ("ingest", "select", "prep", "simulate", "raster", "trace", "composite", "export")
-
-_LOCATIONS: dict[str, str] = {
-    "ingest": "pipeline.ingest:STAGE",
-    "select": "pipeline.select:STAGE",
-    "prep": "pipeline.prep:STAGE",
-    "simulate": "pipeline.simulate:STAGE",
-    "raster": "pipeline.raster:STAGE",
-    "trace": "pipeline.trace.stage:STAGE",
-    "composite": "pipeline.composite:STAGE",
-    "export": "pipeline.export:STAGE",
-}
-
-_HELP: dict[str, str] = {
-    "ingest": "read the scans and object libraries into the run folder (reconstruct room meshes)",
-    "select": "score frames for blur and keep a sharp, diverse subset",
-    "prep": "repair and simplify room and object meshes; build collision proxies",
-    "simulate": "drop objects into each room with rigid-body physics",
-    "raster": "rasterize depth, labels and masks; compute annotations",
-    "trace": "path-trace ambient occlusion and PBR shading of the objects",
-    "composite": "fuse the rendered objects into the real photos",
-    "export": "write the dataset in BOP, COCO and YOLO formats",
-}
+if TYPE_CHECKING:  # pragma: no cover
+    from pipeline.runner import Stage
 
 
-def _noop_plan(ctx):  # pragma: no cover - placeholders never plan
-    return []
+class StageEntry(NamedTuple):
+    name: str
+    location: str   # "module:attribute" of its Stage
+    help: str
 
 
-def _noop_item(ctx, item):  # pragma: no cover
-    return None
+STAGES: tuple[StageEntry, ...] = (
+    StageEntry("ingest", "pipeline.ingest:STAGE",
+               "read the scans and object libraries into the run folder (reconstruct room meshes)"),
+    StageEntry("select", "pipeline.select:STAGE", "score frames for blur and keep a sharp, diverse subset"),
+    StageEntry("prep", "pipeline.prep:STAGE",
+               "repair and simplify room and object meshes; build collision proxies"),
+    StageEntry("simulate", "pipeline.simulate:STAGE", "drop objects into each room with rigid-body physics"),
+    StageEntry("raster", "pipeline.raster:STAGE", "rasterize depth, labels and masks; compute annotations"),
+    StageEntry("trace", "pipeline.trace.stage:STAGE",
+               "path-trace ambient occlusion and PBR shading of the objects"),
+    StageEntry("composite", "pipeline.composite:STAGE", "fuse the rendered objects into the real photos"),
+    StageEntry("export", "pipeline.export:STAGE", "write the dataset in BOP, COCO and YOLO formats"),
+)
+
+STAGE_ORDER: tuple[str, ...] = tuple(e.name for e in STAGES)
+_BY_NAME = {e.name: e for e in STAGES}
 
 
 def get_stage(name: str) -> Stage:
     """The :class:`~pipeline.runner.Stage` called ``name`` (imports its module).
 
-    ``name`` may also be ``"module:attribute"`` of a Stage outside the registry (tests use this).
+    ``name`` may also be ``"module:attribute"`` of a Stage outside the table (tests use this).
     """
     if ":" in name:
         module, attr = name.split(":")
         return getattr(importlib.import_module(module), attr)
-    if name not in _LOCATIONS:
+    if name not in _BY_NAME:
         raise KeyError(f"unknown stage {name!r}; stages: {', '.join(STAGE_ORDER)}")
-    loc = _LOCATIONS[name]
-    if loc.startswith("placeholder:"):
-        note = f"not built yet ({loc.split(':', 1)[1]})"
-        return Stage(name=name, plan=_noop_plan, run_item=_noop_item, placeholder=note)
-    module, attr = loc.split(":")
+    module, attr = _BY_NAME[name].location.split(":")
     stage = getattr(importlib.import_module(module), attr)
     if stage.name != name:
-        raise RuntimeError(f"{loc} is stage {stage.name!r}, expected {name!r}")
+        raise RuntimeError(f"{_BY_NAME[name].location} is stage {stage.name!r}, expected {name!r}")
     return stage
 
 
 def stage_help(name: str) -> str:
-    return _HELP[name]
+    return _BY_NAME[name].help

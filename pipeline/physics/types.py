@@ -76,7 +76,7 @@ class Model:
     room_thickness: float        # m, the surface counts as a shell of this half-thickness
     opt: Options = field(default_factory=Options)
     room_mesh: object = None     # exact closest-point queries on the room surface
-    #                              (:class:`~pipeline.physics.collide.RoomMesh`), None = grid only
+    #                              (:class:`~pipeline.physics.roommesh.RoomMesh`), None = grid only
 
     @property
     def nbody(self) -> int:
@@ -254,7 +254,7 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
         Room proxy with ``origin`` (3,), ``spacing`` float and ``udf`` (nx, ny, nz), or None. Optional:
         ``mesh_vertices`` (V, 3) / ``mesh_faces`` (T, 3), the room surface for exact distances at
         contacts (the grid's trilinear gradient near the surface is off by mm), or ``room_mesh``, a
-        prebuilt :class:`~pipeline.physics.collide.RoomMesh` (shared across drops of one room).
+        prebuilt :class:`~pipeline.physics.roommesh.RoomMesh` (shared across drops of one room).
     room_thickness
         Half-thickness of the room surface shell, m (scan surfaces have no inside).
     opt
@@ -349,7 +349,7 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
         _check_finite("room udf", udf)
         room_mesh = room.get("room_mesh")
         if room_mesh is None and "mesh_vertices" in room and "mesh_faces" in room:
-            from pipeline.physics.collide import RoomMesh
+            from pipeline.physics.roommesh import RoomMesh
 
             room_mesh = RoomMesh(room["mesh_vertices"], room["mesh_faces"])
     else:

@@ -23,6 +23,26 @@ from pipeline.geometry import up_frame
 
 log = logging.getLogger(__name__)
 
+ENV_W, ENV_H = 32, 16   # equirectangular environment map size (azimuth x polar angle bins)
+
+
+def env_bin(dirs: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Equirectangular bin (row, col) of unit world directions ``dirs (N, 3)`` about the ``up`` axis."""
+    e1, e2, up = up_frame(up)
+    d = np.asarray(dirs, np.float64)
+    cz = np.clip(d @ up, -1.0, 1.0)
+    phi = np.arctan2(d @ e2, d @ e1)
+    row = np.clip(((1.0 - cz) * 0.5 * ENV_H).astype(np.int64), 0, ENV_H - 1)   # uniform in cos: equal solid angle
+    col = np.clip(((phi + np.pi) / (2 * np.pi) * ENV_W).astype(np.int64), 0, ENV_W - 1)
+    return row, col
+
+
+def env_lookup(env: np.ndarray, up: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Radiance (N, 3) float32 of the environment map ``env (ENV_H, ENV_W, 3)`` in directions ``dirs (N, 3)``."""
+    r, c = env_bin(dirs, up)
+    return np.asarray(env, np.float32)[r, c]
+
+
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)  # Rec. 709 luminance weights, linear RGB
 
 

@@ -27,12 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.geometry import up_frame
-from pipeline.trace.lights import LUMINANCE, srgb_to_linear
+from pipeline.trace.lights import ENV_H, ENV_W, LUMINANCE, env_bin, env_lookup, srgb_to_linear  # noqa: F401
 
 log = logging.getLogger(__name__)
 
-ENV_W, ENV_H = 32, 16   # equirectangular environment map size (azimuth x polar angle bins)
 GRID_W = 80             # photo pixels cast per row by :func:`scan_lighting` (stride = width / GRID_W)
 
 
@@ -49,23 +47,6 @@ class PhotoLights:
     points: np.ndarray           # (S, 3) float32 room points the photos saw unclipped (energy balance)
     normals: np.ndarray          # (S, 3) float32 their normals, facing the camera that saw them
     radiance: np.ndarray         # (S,) float32 their linear luminance in the photo
-
-
-def env_bin(dirs: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Equirectangular bin (row, col) of unit world directions ``dirs (N, 3)`` about the ``up`` axis."""
-    e1, e2, up = up_frame(up)
-    d = np.asarray(dirs, np.float64)
-    cz = np.clip(d @ up, -1.0, 1.0)
-    phi = np.arctan2(d @ e2, d @ e1)
-    row = np.clip(((1.0 - cz) * 0.5 * ENV_H).astype(np.int64), 0, ENV_H - 1)   # uniform in cos: equal solid angle
-    col = np.clip(((phi + np.pi) / (2 * np.pi) * ENV_W).astype(np.int64), 0, ENV_W - 1)
-    return row, col
-
-
-def env_lookup(env: np.ndarray, up: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """Radiance (N, 3) float32 of the environment map ``env (ENV_H, ENV_W, 3)`` in directions ``dirs (N, 3)``."""
-    r, c = env_bin(dirs, up)
-    return np.asarray(env, np.float32)[r, c]
 
 
 def photo_lights(vertices: np.ndarray, faces: np.ndarray, intersector, frames, *, up: np.ndarray,
@@ -237,7 +218,7 @@ def scan_lighting(scan, room_vertices: np.ndarray, room_faces: np.ndarray, room_
     cfg : :class:`~pipeline.config.TraceConfig`
     seed : the run seed
     """
-    from pipeline.ingest import read_color
+    from pipeline.scanformats.common import read_color
     from pipeline.seeding import item_rng
     from pipeline.trace.lights import detect_bright_triangles
     from pipeline.trace.scene import boost_lights, build_scene

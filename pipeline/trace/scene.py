@@ -16,7 +16,7 @@ import numpy as np
 
 from pipeline.trace.intersect import EmbreeIntersector, Intersector
 from pipeline.trace.lights import (AreaLights, PointLights, build_area_lights, detect_bright_triangles,
-                                   mean_radiance, published_lights, srgb_to_linear)
+                                   env_lookup, mean_radiance, published_lights, srgb_to_linear)
 from pipeline.types import ObjectModel
 
 log = logging.getLogger(__name__)
@@ -61,7 +61,6 @@ class TraceScene:
         """Radiance (N, 3) float32 seen by rays ``dirs (N, 3)`` that leave the scene."""
         if self.env_map is None:
             return np.broadcast_to(self.env_radiance, (len(dirs), 3))
-        from pipeline.trace.photolights import env_lookup
 
         return env_lookup(self.env_map, np.array([0.0, 0.0, 1.0]) if self.up is None else self.up, dirs)
 
@@ -186,7 +185,7 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
         (:func:`pipeline.trace.photolights.photo_lights`): lights like clipped vertex colours (linear
         white x ``radiance_scale`` x ``light_gain``), scan lighting only, ignored when ``light_gain <= 0``
     env_map : (h, w, 3) float32 equirectangular radiance of escaping rays about ``up``
-        (:func:`pipeline.trace.photolights.env_lookup`); replaces ``env_radiance`` for the object tracer
+        (:func:`pipeline.trace.lights.env_lookup`); replaces ``env_radiance`` for the object tracer
         and the shadow pass (scan lighting only)
     """
     rv = np.asarray(room_vertices, np.float64).reshape(-1, 3)

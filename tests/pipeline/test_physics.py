@@ -479,7 +479,7 @@ def _tilted_sheet_room(deg=15.0, half=0.5, spacing=0.02, offset=0.007):
 
 @pytest.mark.slow   # the first open3d import takes ~5 s here
 def test_room_mesh_gives_exact_distance_normal_and_sheet_side():
-    from pipeline.physics.collide import RoomMesh
+    from pipeline.physics.roommesh import RoomMesh
 
     room, n, c = _tilted_sheet_room()
     rm = RoomMesh(room["mesh_vertices"], room["mesh_faces"])
