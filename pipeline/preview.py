@@ -69,7 +69,7 @@ def draw_annotations(rgb: np.ndarray, scene_dir: Path, im_id: int, gts: list, in
             cv2.drawContours(img, contours, -1, colour, 1)
         x, y, w, h = info.get("bbox_visib", [-1, -1, -1, -1])
         if w > 0 and h > 0:
-            cv2.rectangle(img, (x, y), (x + w - 1, y + h - 1), colour, 1)
+            cv2.rectangle(img, (x, y), (x + w, y + h), colour, 1)  # bop_toolkit box: w = x_max - x_min
         R = np.asarray(gt["cam_R_m2c"], np.float64).reshape(3, 3)
         t = np.asarray(gt["cam_t_m2c"], np.float64).reshape(3)
         diameter = float(models_info.get(str(gt["obj_id"]), {}).get("diameter", 100.0))

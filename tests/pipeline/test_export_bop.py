@@ -196,128 +196,127 @@ def test_chunking_assigns_new_folders():
     assert [s.global_id for s in slots] == list(range(6))
 
 
-BOPTK_SRC = Path(__file__).resolve().parents[3] / "shared" / "tools" / "bop_toolkit"
-
-
 def _boptk_python() -> Path | None:
     py = BOPTK_VENV / "bin" / "python"
-    if not py.is_file() or not (BOPTK_SRC / "bop_toolkit_lib").is_dir():
+    if not py.is_file():
         return None
-    ok = subprocess.run([str(py), "-c", "import bop_toolkit_lib.inout"], capture_output=True, timeout=60,
-                        env={**os.environ, "PYTHONPATH": str(BOPTK_SRC)})
+    ok = subprocess.run([str(py), "-c", "import bop_toolkit_lib.inout"], capture_output=True, timeout=60)
     return py if ok.returncode == 0 else None
 
 
-JUDGE = r"""
-import json, sys
-import numpy as np
-from bop_toolkit_lib import inout, misc, visibility
-root, depths_dir, delta = sys.argv[1], sys.argv[2], float(sys.argv[3])
-sd = root + '/train_pbr/000000'
-gt = inout.load_scene_gt(sd + '/scene_gt.json')
-info = inout.load_json(sd + '/scene_gt_info.json', keys_to_int=True)
-cam = inout.load_scene_camera(sd + '/scene_camera.json')
-inout.load_cam_params(root + '/camera.json')
-inout.load_json(root + '/models/models_info.json', keys_to_int=True)
-rows = []
-for im_id in sorted(gt):
-    depth = inout.load_depth(sd + '/depth/%06d.png' % im_id) * cam[im_id]['depth_scale']   # mm
-    K = cam[im_id]['cam_K']
-    h, w = depth.shape
-    inout.load_im(sd + '/rgb/%06d.png' % im_id)
-    dist_im = misc.depth_im_to_dist_im_fast(depth, K)
-    large = np.load(depths_dir + '/%06d.npy' % im_id)          # (N, 3h, 3w) mm: each object alone
-    for gt_id, g in enumerate(gt[im_id]):
-        depth_gt_large = large[gt_id]
-        depth_gt = depth_gt_large[h:2 * h, w:2 * w]
-        dist_gt = misc.depth_im_to_dist_im_fast(depth_gt, K)
-        visib_gt = visibility.estimate_visib_mask_gt(dist_im, dist_gt, delta, visib_mode='bop19')
-        px_all = int(np.sum(depth_gt_large > 0))
-        px_valid = int(np.sum(dist_im[dist_gt > 0] > 0))
-        px_visib = int(visib_gt.sum())
-        fract = px_visib / float(px_all) if px_all > 0 else 0.0
-        bbox_visib = [-1, -1, -1, -1]
-        if px_visib > 0:
-            ys, xs = visib_gt.nonzero()
-            bbox_visib = [int(e) for e in misc.calc_2d_bbox(xs, ys, (w, h))]
-        ours = inout.load_im(sd + '/mask_visib/%06d_%06d.png' % (im_id, gt_id)) > 0
-        full = inout.load_im(sd + '/mask/%06d_%06d.png' % (im_id, gt_id)) > 0
-        union = np.logical_or(ours, visib_gt).sum()
-        amodal_union = np.logical_or(full, depth_gt > 0).sum()
-        rows.append({'im': im_id, 'gt': gt_id, 'obj': g['obj_id'], 'px_all': px_all, 'px_valid': px_valid,
-                     'px_visib': px_visib, 'visib_fract': fract, 'bbox_visib': bbox_visib,
-                     'iou': float(np.logical_and(ours, visib_gt).sum() / union) if union else 1.0,
-                     'amodal_iou': float(np.logical_and(full, depth_gt > 0).sum() / amodal_union)
-                     if amodal_union else 1.0,
-                     'info': info[im_id][gt_id]})
-print(json.dumps(rows))
-"""
+BOPTK_MISSING = (f"bop_toolkit is not installed in {BOPTK_VENV} (it is not on PyPI): bin/setup --test installs "
+                 f"it from ../shared/tools/bop_toolkit, which is absent or failed to install")
 
 
-def _object_depths_large(root: Path, out_dir: Path) -> None:
-    """Each object alone, z-depth in mm on bop_toolkit's 3x canvas (calc_gt_info.py's ren_cx_offset), by
-    Open3D's ray caster on the written models and poses (not our rasterizer): what bop_toolkit's
-    renderer would give calc_gt_info.py."""
-    sd = root / "train_pbr" / "000000"
-    gt = json.loads((sd / "scene_gt.json").read_text())
-    cam = json.loads((sd / "scene_camera.json").read_text())
-    models = {int(p.stem.split("_")[1]): read_ply_mm(p) for p in (root / "models").glob("obj_*.ply")}
-    for key, entries in gt.items():
-        K = np.reshape(cam[key]["cam_K"], (3, 3)).astype(np.float64)
-        h, w = S.H_RUN, S.W_RUN
-        Kl = K.copy()
-        Kl[0, 2] += w
-        Kl[1, 2] += h
-        stack = []
-        for g in entries:
-            m = models[int(g["obj_id"])]
-            R = np.reshape(g["cam_R_m2c"], (3, 3))
-            v = m["pts"] @ R.T + np.reshape(g["cam_t_m2c"], 3)     # mm, camera frame
-            z, idx = S.raycast([(v, m["faces"])], Kl, np.eye(4), 3 * w, 3 * h)
-            stack.append(np.where(idx >= 0, z, 0.0).astype(np.float32))
-        np.save(out_dir / f"{int(key):06d}.npy", np.stack(stack))
-
-
-def test_bop_toolkit_judges_the_dataset(run, tmp_path):
-    """bop_toolkit's own code (in its own venv: numpy<2) reads every file we wrote and recomputes
-    mask_visib and scene_gt_info as its calc_gt_info.py does (visibility.estimate_visib_mask_gt, bop19,
-    delta 15 mm, on the depth PNG we wrote), from each object's depth rendered alone by an independent ray
-    caster; they must agree with what we wrote."""
+def test_bop_toolkit_recomputes_gt_info_and_masks(run):
+    """bop_toolkit as the judge: its calc_gt_info.py computation (its vispy renderer on Mesa's software EGL,
+    its distance images, estimate_visib_mask_gt "bop19" with our delta, calc_2d_bbox) on the written
+    poses, models and depth reproduces the written scene_gt_info, masks and mask_visib."""
     from pipeline.tolerances import BOP_VISIB_DELTA_M
 
     py = _boptk_python()
     if py is None:
-        pytest.skip(f"bop_toolkit's environment is missing ({BOPTK_VENV}, made by bin/setup --test) or "
-                    f"{BOPTK_SRC} is absent; run bin/setup --test")
+        pytest.skip(BOPTK_MISSING)
+    judge = Path(__file__).with_name("boptk_judge.py")
+    # bop_toolkit's vispy renderer samples pixel (r, c) at u = c + 0.5, v = r + 0.5 (OpenGL pixel centres);
+    # we (OpenCV) sample at u = c, v = r. Rendering with cx + 0.5, cy + 0.5 gives our convention: without
+    # it, 37 of 42 boxes differ by a pixel and small instances' IoU drops to 0.56 (README: Coordinates).
+    out = subprocess.run([str(py), str(judge), str(run["root"]), str(BOP_VISIB_DELTA_M * 1000), "0.5"],
+                         capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONPATH": ""})
+    assert out.returncode == 0, out.stderr[-3000:]
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    print(f"bop_toolkit judge: {r['instances']} instances in {r['images']} images; max |visib_fract diff| "
+          f"{r['max_visib_fract_diff']:.4f}; min mask_visib IoU {r['min_mask_visib_iou']:.4f} ({r['worst']}); "
+          f"min mask IoU {r['min_mask_iou']:.4f}; px_count_valid max diff {r['px_count_valid_diff']}; "
+          f"bbox mismatches obj {len(r['bbox_obj_mismatch'])}, visib {len(r['bbox_visib_mismatch'])}")
+    assert r["instances"] == 6 * 7 and r["images"] == 6
+    assert r["max_visib_fract_diff"] <= 0.01
+    assert r["min_mask_visib_iou"] >= 0.99 and r["min_mask_iou"] >= 0.99
+    assert r["bbox_obj_mismatch"] == [] and r["bbox_visib_mismatch"] == []
+
+
+@pytest.fixture(scope="module")
+def run_holes(tmp_path_factory):
+    """The same scene with the sensor depth missing on the right half of every frame (where the room mesh
+    hides objects) and without real-depth fusion: the cases where the written depth used to contradict
+    mask_visib (issue 18)."""
+    from pipeline.render_gl import shared_rasterizer
+
+    run_dir = tmp_path_factory.mktemp("holes") / "RUN"
+    made = S.make_run(run_dir, shared_rasterizer())
+    for p in made["scan"].depth_paths:
+        d = cv2.imread(p, cv2.IMREAD_UNCHANGED)
+        d[:, d.shape[1] // 2:] = 0
+        cv2.imwrite(p, d)
+    cfg = build_config({"raster": {"poses": str(made["poses"]), "real_depth_fusion": False},
+                        "export": {"image_format": "png"}})
+    S.run_stage_direct(raster.STAGE, run_dir, cfg)
+    S.write_composites(run_dir)
+    S.run_stage_direct(export.STAGE, run_dir, cfg)
+    return dict(made, run_dir=run_dir, cfg=cfg, root=run_dir / "export" / export.DATASET)
+
+
+def test_bop_toolkit_judges_missing_sensor_depth(run_holes):
+    """Where the room mesh hides an object and the sensor has no depth, the written depth is the room's,
+    so bop_toolkit (missing depth counts as visible) agrees with mask_visib and px_count_valid."""
+    from pipeline.tolerances import BOP_VISIB_DELTA_M
+
+    root = run_holes["root"]
+    sd = root / "train_pbr" / "000000"
+    filled = 0
+    for im_id in range(6):
+        d = cv2.imread(str(sd / "depth" / f"{im_id:06d}.png"), cv2.IMREAD_UNCHANGED)
+        any_obj = np.zeros(d.shape, bool)
+        any_vis = np.zeros(d.shape, bool)
+        for g in range(7):
+            any_obj |= cv2.imread(str(sd / "mask" / f"{im_id:06d}_{g:06d}.png"), cv2.IMREAD_UNCHANGED) > 0
+            any_vis |= cv2.imread(str(sd / "mask_visib" / f"{im_id:06d}_{g:06d}.png"), cv2.IMREAD_UNCHANGED) > 0
+        filled += int((any_obj & ~any_vis & (d > 0))[:, d.shape[1] // 2:].sum())
+    assert filled > 0  # objects hidden by the room where the sensor has no depth: the room's depth, not 0
+    py = _boptk_python()
+    if py is None:
+        pytest.skip(BOPTK_MISSING)
+    judge = Path(__file__).with_name("boptk_judge.py")
+    out = subprocess.run([str(py), str(judge), str(root), str(BOP_VISIB_DELTA_M * 1000), "0.5"],
+                         capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONPATH": ""})
+    assert out.returncode == 0, out.stderr[-3000:]
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    print(f"bop_toolkit judge (sensor depth missing on the right half, {filled} hidden pixels there): "
+          f"{r['instances']} instances; max |visib_fract diff| {r['max_visib_fract_diff']:.4f}; min mask_visib "
+          f"IoU {r['min_mask_visib_iou']:.4f}; px_count_valid max diff {r['px_count_valid_diff']}")
+    assert r["instances"] == 42 and r["max_visib_fract_diff"] <= 0.01 and r["min_mask_visib_iou"] >= 0.99
+    assert r["px_count_valid_diff"] == 0
+    assert r["bbox_obj_mismatch"] == [] and r["bbox_visib_mismatch"] == []
+
+
+def test_bop_toolkit_reads_the_dataset(run):
+    """bop_toolkit's own loaders (numpy<2, so in its own venv) read every file we wrote."""
+    py = _boptk_python()
+    if py is None:
+        pytest.skip(BOPTK_MISSING)
     root = run["root"]
-    depths = tmp_path / "depths"
-    depths.mkdir()
-    _object_depths_large(root, depths)
-    out = subprocess.run([str(py), "-c", JUDGE, str(root), str(depths), str(BOP_VISIB_DELTA_M * 1000)],
-                         capture_output=True, text=True, timeout=300,
-                         env={**os.environ, "PYTHONPATH": str(BOPTK_SRC)})
+    script = f"""
+import json, numpy as np
+from bop_toolkit_lib import inout
+root = {str(root)!r}
+sd = root + '/train_pbr/000000'
+gt = inout.load_scene_gt(sd + '/scene_gt.json')
+info = inout.load_json(sd + '/scene_gt_info.json', keys_to_int=True)
+cam = inout.load_scene_camera(sd + '/scene_camera.json')
+cp = inout.load_cam_params(root + '/camera.json')
+m = inout.load_ply(root + '/models/obj_000001.ply')
+d = inout.load_depth(sd + '/depth/000000.png') * cam[0]['depth_scale']
+mask = inout.load_im(sd + '/mask_visib/000000_000000.png')
+print(json.dumps({{'n_im': len(gt), 'n_gt': len(gt[0]), 't': gt[0][0]['cam_t_m2c'].ravel().tolist(),
+                  'K': cam[0]['cam_K'].ravel().tolist(), 'pts': m['pts'].shape[0],
+                  'visib': int((mask > 0).sum()), 'px': info[0][0]['px_count_visib'], 'dmax': float(d.max())}}))
+"""
+    out = subprocess.run([str(py), "-c", script], capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "PYTHONPATH": ""})
     assert out.returncode == 0, out.stderr
-    rows = json.loads(out.stdout.strip().splitlines()[-1])
-    assert len(rows) == 6 * 7
-    visible = [r for r in rows if r["px_visib"] > 0]
-    assert len(visible) >= 30
-    figures = {"instances": len(rows),
-               "max_visib_fract_diff": max(abs(r["visib_fract"] - r["info"]["visib_fract"]) for r in rows),
-               "min_mask_visib_iou": min(r["iou"] for r in rows),
-               "min_mask_iou": min(r["amodal_iou"] for r in rows)}
-    print("bop_toolkit judge:", json.dumps(figures))
-    assert figures["max_visib_fract_diff"] <= 0.01, figures
-    assert figures["min_mask_visib_iou"] >= 0.99 and figures["min_mask_iou"] >= 0.99, figures
-    for r in rows:
-        i = r["info"]
-        assert abs(r["px_all"] - i["px_count_all"]) <= 0.01 * max(r["px_all"], 1) + 2, r
-        assert abs(r["px_valid"] - i["px_count_valid"]) <= 0.01 * max(r["px_valid"], 1) + 2, r
-        if r["px_visib"] > 0:
-            # bop_toolkit's calc_2d_bbox spans the extreme pixels' centres (w = x_max - x_min); ours, like
-            # COCO's, spans the pixels (w = x_max - x_min + 1). Same corner, one pixel more in w and h.
-            bx, by, bw, bh = r["bbox_visib"]
-            ox, oy, ow, oh = i["bbox_visib"]
-            assert abs(ox - bx) <= 1 and abs(oy - by) <= 1 and abs(ow - 1 - bw) <= 1 and abs(oh - 1 - bh) <= 1, r
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    assert r["n_im"] == 6 and r["n_gt"] == 7 and r["visib"] == r["px"]
+    assert r["pts"] == len(run["library"][0].vertices)
 
 
 def test_export_takes_rgb_and_depth_from_the_compositor(run):
