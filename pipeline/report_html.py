@@ -106,53 +106,48 @@ def stage_chart(stages: list[dict]) -> bytes | None:
 
 
 def _samples(run: Path, max_samples: int) -> tuple[str, list[str]]:
-    """HTML of the sample grid and the notes on what could not be drawn."""
+    """HTML of the sample grid and the notes on what could not be drawn. Writes the full-size annotated
+    images to ``RUN/report/`` and removes the ones an earlier invocation wrote that are not shown now."""
     import cv2
 
-    from pipeline.preview import _images, draw_annotations
+    from pipeline.preview import annotated_samples
 
     notes: list[str] = []
     dataset = run / "export" / "dataset"
-    if not (dataset / "train_pbr").is_dir():
-        return "<p class=muted>No dataset yet (the export stage has not run).</p>", notes
-    images = _images(dataset)
-    if not images:
-        return "<p class=muted>The dataset has no images: every frame was rejected (see below).</p>", notes
-    pick = np.unique(np.linspace(0, len(images) - 1, min(max_samples, len(images))).round().astype(int))
-    models_info = _read(dataset / "models" / "models_info.json") or {}
-    cache: dict[Path, tuple] = {}
-    figs = []
-    for idx in pick:
-        scene_dir, im_id = images[idx]
-        if scene_dir not in cache:
-            cache[scene_dir] = tuple(_read(scene_dir / n) or {} for n in
-                                     ("scene_gt.json", "scene_gt_info.json", "scene_camera.json"))
-        gt, info, cam = cache[scene_dir]
-        key = str(im_id)
-        rgb_path = next((p for p in (scene_dir / "rgb" / f"{im_id:06d}{ext}" for ext in (".jpg", ".png"))
-                         if p.is_file()), None)
-        bgr = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR) if rgb_path is not None else None
-        if bgr is None or key not in cam:
-            notes.append(f"{scene_dir.name}/{im_id:06d}: image or camera missing from the dataset")
-            continue
-        full = draw_annotations(bgr[..., ::-1], scene_dir, im_id, gt.get(key, []), info.get(key, []),
-                                cam[key], models_info)
-        name = f"{scene_dir.parent.name}_{scene_dir.name}_{im_id:06d}.jpg"
-        rel = f"{ASSETS_DIR}/{name}"
-        atomic_write_bytes(run / rel, encode_image(run / rel, full, jpeg_quality=92))
-        h = int(round(full.shape[0] * THUMB_WIDTH / full.shape[1]))
-        thumb = cv2.resize(full, (THUMB_WIDTH, h), interpolation=cv2.INTER_AREA)
-        ok, jpg = cv2.imencode(".jpg", np.ascontiguousarray(thumb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 85])
-        objs = ", ".join(str(g["obj_id"]) for g in gt.get(key, []))
-        visib = [float(i.get("visib_fract", 0.0)) for i in info.get(key, [])]
-        cap = (f"{scene_dir.name}/{im_id:06d}: {len(gt.get(key, []))} objects ({objs})"
-               + (f", visible {min(visib):.0%}-{max(visib):.0%}" if visib else ""))
-        figs.append(f'<figure><a href="{_e(rel)}"><img src="{_data_uri(jpg.tobytes(), "image/jpeg")}" '
-                    f'alt="{_e(cap)}"></a><figcaption>{_e(cap)}</figcaption></figure>')
-    text = (f"<p>{len(figs)} of {len(images)} images, evenly spread; outlines: visible masks "
-            f"(<code>mask_visib</code>), rectangles: <code>bbox_visib</code>, axes: the pose "
-            f"(x red, y green, z blue, half the model's diameter). Click an image for full size.</p>")
-    return text + '<div class="grid">' + "".join(figs) + "</div>", notes
+    assets = run / ASSETS_DIR
+    written: set[str] = set()
+    try:
+        if not (dataset / "train_pbr").is_dir():
+            return "<p class=muted>No dataset yet (the export stage has not run).</p>", notes
+        n_images, samples = annotated_samples(dataset, max_samples)
+        if not n_images:
+            return "<p class=muted>The dataset has no images: every frame was rejected (see below).</p>", notes
+        figs = []
+        for s in samples:
+            if s.image is None:
+                notes.append(s.problem)
+                continue
+            name = f"{s.scene_dir.parent.name}_{s.scene_dir.name}_{s.im_id:06d}.jpg"
+            rel = f"{ASSETS_DIR}/{name}"
+            atomic_write_bytes(run / rel, encode_image(run / rel, s.image, jpeg_quality=92))
+            written.add(name)
+            h = int(round(s.image.shape[0] * THUMB_WIDTH / s.image.shape[1]))
+            thumb = cv2.resize(s.image, (THUMB_WIDTH, h), interpolation=cv2.INTER_AREA)
+            _, jpg = cv2.imencode(".jpg", np.ascontiguousarray(thumb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 85])
+            objs = ", ".join(str(g.get("obj_id", "?")) for g in s.gts)
+            visib = [float(i.get("visib_fract", 0.0)) for i in s.infos]
+            cap = (f"{s.scene_dir.name}/{s.im_id:06d}: {len(s.gts)} objects ({objs})"
+                   + (f", visible {min(visib):.0%}-{max(visib):.0%}" if visib else ""))
+            figs.append(f'<figure><a href="{_e(rel)}"><img src="{_data_uri(jpg.tobytes(), "image/jpeg")}" '
+                        f'alt="{_e(cap)}"></a><figcaption>{_e(cap)}</figcaption></figure>')
+        text = (f"<p>{len(figs)} of {n_images} images, evenly spread; outlines: visible masks "
+                f"(<code>mask_visib</code>), rectangles: <code>bbox_visib</code>, axes: the pose "
+                f"(x red, y green, z blue, half the model's diameter). Click an image for full size.</p>")
+        return text + '<div class="grid">' + "".join(figs) + "</div>", notes
+    finally:
+        for old in assets.glob("*.jpg") if assets.is_dir() else ():
+            if old.name not in written:   # an earlier invocation's sample that is not on the page now
+                old.unlink(missing_ok=True)
 
 
 def _rejections(report: dict, run: Path) -> str:
