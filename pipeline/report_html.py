@@ -33,6 +33,8 @@ REPORT_NAME = "report.html"
 ASSETS_DIR = "report"          # RUN/report/: full-size annotated sample images
 MAX_SAMPLES = 12
 THUMB_WIDTH = 320
+# Frame-selection scores (selection.json) in the order the table shows them; others follow by name.
+SCORE_ORDER = ("relative", "blur_effect", "detail", "noise", "brightness", "contrast", "angle_deg", "travel_m")
 
 STYLE = """
 body{font:14px/1.45 system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0;background:#f6f7f9;color:#1d2330}
@@ -40,7 +42,7 @@ header{background:#1d2330;color:#fff;padding:18px 28px}header h1{margin:0;font-s
 header p{margin:4px 0 0;color:#b8c0cf;font-size:13px}
 main{padding:8px 28px 40px;max-width:1400px}
 section{background:#fff;border:1px solid #e1e4ea;border-radius:8px;margin:18px 0;padding:14px 18px}
-h2{font-size:17px;margin:2px 0 10px}h3{font-size:15px;margin:14px 0 6px}
+h2{font-size:17px;margin:2px 0 10px}h3{font-size:15px;margin:14px 0 6px}h4{font-size:13px;margin:10px 0 4px}
 .tiles{display:flex;flex-wrap:wrap;gap:12px}
 .stat{background:#f0f3f8;border-radius:6px;padding:8px 14px;min-width:120px}
 .stat b{display:block;font-size:22px}.stat span{color:#5b6475;font-size:12px}
@@ -127,9 +129,10 @@ def _samples(run: Path, max_samples: int) -> tuple[str, list[str]]:
             if s.image is None:
                 notes.append(s.problem)
                 continue
-            name = f"{s.scene_dir.parent.name}_{s.scene_dir.name}_{s.im_id:06d}.jpg"
+            # PNG: JPEG's chroma subsampling smears the 1-px coloured outlines the full size is for
+            name = f"{s.scene_dir.parent.name}_{s.scene_dir.name}_{s.im_id:06d}.png"
             rel = f"{ASSETS_DIR}/{name}"
-            atomic_write_bytes(run / rel, encode_image(run / rel, s.image, jpeg_quality=92))
+            atomic_write_bytes(run / rel, encode_image(run / rel, s.image))
             written.add(name)
             h = int(round(s.image.shape[0] * THUMB_WIDTH / s.image.shape[1]))
             thumb = cv2.resize(s.image, (THUMB_WIDTH, h), interpolation=cv2.INTER_AREA)
@@ -145,7 +148,7 @@ def _samples(run: Path, max_samples: int) -> tuple[str, list[str]]:
                 f"(x red, y green, z blue, half the model's diameter). Click an image for full size.</p>")
         return text + '<div class="grid">' + "".join(figs) + "</div>", notes
     finally:
-        for old in assets.glob("*.jpg") if assets.is_dir() else ():
+        for old in [*assets.glob("*.png"), *assets.glob("*.jpg")] if assets.is_dir() else ():
             if old.name not in written:   # an earlier invocation's sample that is not on the page now
                 old.unlink(missing_ok=True)
 
@@ -190,29 +193,51 @@ def _scans(run: Path) -> str:
                  ["frames read / kept after reading", f"{meta.get('frames_read', '?')} / {meta.get('frames_kept', '?')}"],
                  ["image size", f"{doc.get('width', '?')} x {doc.get('height', '?')}"],
                  ["room mesh", f"{meta.get('mesh', '?')} ({meta.get('mesh_faces', '?')} faces)"],
-                 ["up", meta.get("up_source", "?")],
-                 ["colour-depth registration", meta.get("registration", "not recorded")]]
-        for k, v in (meta.get("registration_figures") or {}).items():   # colour camera estimation
-            facts.append([f"registration: {k}", v])
+                 ["up", meta.get("up_source", "?")]]
+        if meta.get("registration"):
+            facts.append(["colour-depth registration", meta["registration"]])
         skipped = {k: v for k, v in (meta.get("skipped") or {}).items() if v}
         if skipped:
             facts.append(["frames skipped on reading", ", ".join(f"{k}: {v}" for k, v in skipped.items())])
         for w in meta.get("warnings", []):
             facts.append(["warning", w])
-        block = f"<h3>{_e(scene)}</h3>" + _table(["", ""], facts)
+        block = f"<h3>{_e(scene)}</h3>" + _table(["", ""], facts) + _registration(meta)
         sel = _read(run / "select" / scene / "selection.json")
         if sel:
             frames = sel.get("frames", [])
             kept = sum(1 for f in frames if f.get("kept"))
-            keys = ["relative", "blur_effect", "brightness", "contrast", "angle_deg", "travel_m"]
+            # every score the selection recorded, in the order of SCORE_ORDER, then the rest by name
+            found = {k for f in frames for k in (f.get("scores") or {})}
+            keys = [k for k in SCORE_ORDER if k in found] + sorted(found - set(SCORE_ORDER))
             rows = [[f.get("frame_id"), "kept" if f.get("kept") else "dropped", f.get("reason", "")]
-                    + [f"{float(f.get('scores', {}).get(k, float('nan'))):.3f}" for k in keys] for f in frames]
+                    + [_num((f.get("scores") or {}).get(k)) for k in keys] for f in frames]
             block += (f"<details><summary>Frame selection: {kept} of {len(frames)} frames kept "
                       f"(method {_e(sel.get('method', '?'))})</summary>"
                       + _table(["frame", "", "reason", *keys], rows, set(range(3, 3 + len(keys))))
                       + "</details>")
         out.append(block)
     return "".join(out)
+
+
+def _num(v) -> str:
+    try:
+        return f"{float(v):.3f}"
+    except (TypeError, ValueError):
+        return "" if v is None else str(v)
+
+
+def _registration(meta: dict) -> str:
+    """Colour-depth registration figures of one scan (``scan.json`` meta ``registration_figures``).
+
+    The hook for the registration issue: ingest records no figures yet, so this section is left out;
+    once ingest writes ``meta["registration_figures"]`` as ``{name: value}`` (a number or text, e.g.
+    the estimated colour focal length and the edge alignment before/after), they appear here as a table.
+    """
+    figs = meta.get("registration_figures")
+    if not isinstance(figs, dict) or not figs:
+        return ""
+    return "<h4>Colour-depth registration</h4>" + _table(["figure", "value"],
+                                                          [[k, _num(v)] for k, v in figs.items()], {1})
 
 
 def _objects(run: Path) -> str:
@@ -230,6 +255,19 @@ def _objects(run: Path) -> str:
     return _table(["id", "name", "mass g", "mass properties from", "what it took"], rows, {2})
 
 
+def _no_rate(report: dict) -> str:
+    """Why run.json has no images per hour (``pipeline.report.throughput`` gives it only for a fresh run
+    through export)."""
+    stages = report.get("stages", [])
+    if not report:
+        return "no run.json yet"
+    if any(int(s.get("skipped", 0)) for s in stages):
+        return "resumed run: not measured"
+    if not any(s.get("stage") == "export" for s in stages):
+        return "export did not run in the last invocation"
+    return "no image made"
+
+
 def render(run_dir: str | Path, *, max_samples: int = MAX_SAMPLES) -> str:
     """The report page of ``run_dir`` as HTML text (writes the full-size sample images beside it)."""
     run = Path(run_dir)
@@ -241,7 +279,7 @@ def render(run_dir: str | Path, *, max_samples: int = MAX_SAMPLES) -> str:
     n_images = tp.get("images", run_report.images(run))
     rate = tp.get("images_per_hour")
     stats = [(n_images, "images in the dataset"),
-             (f"{rate:.0f}" if rate else "-", "images per hour" if rate else "images/hour (resumed run: not measured)"),
+             (f"{rate:.0f}" if rate else "-", "images per hour" if rate else f"images/hour ({_no_rate(report)})"),
              (f"{float(report.get('seconds', 0.0)):.0f} s" if report else "-", "wall time, last invocation"),
              (report.get("failed", "-"), "failed items"),
              (report.get("input_problems", "-"), "inputs left out")]
@@ -259,9 +297,12 @@ def render(run_dir: str | Path, *, max_samples: int = MAX_SAMPLES) -> str:
 
         try:
             c = tomllib.loads(cfg.read_text(encoding="utf-8"))
-            seed = (f"seed {c.get('run', {}).get('seed', '?')}; scans "
-                    f"{', '.join(map(str, c.get('scan', {}).get('paths', [])))}; objects "
-                    f"{', '.join(map(str, c.get('objects', {}).get('paths', [])))}")
+            parts = [f"seed {c.get('run', {}).get('seed', '?')}"]
+            for label, table in (("scans", "scan"), ("objects", "objects")):
+                paths = c.get(table, {}).get("paths", [])
+                if paths:
+                    parts.append(f"{label} {', '.join(map(str, paths))}")
+            seed = "; ".join(parts)
         except (OSError, ValueError):
             seed = "config.toml could not be read"
     return f"""<!DOCTYPE html>
