@@ -219,6 +219,21 @@ def _scans(run: Path) -> str:
     return "".join(out)
 
 
+def _damaged(run: Path, what: str, e: Exception) -> str:
+    log.warning("report: %s of %s could not be drawn (%s: %s)", what, run, type(e).__name__, e)
+    return (f"<p class=bad>The {_e(what)} could not be drawn: a file of this run folder is damaged or from "
+            f"another version ({_e(type(e).__name__)}: {_e(e)}). Re-run the stage that wrote it.</p>")
+
+
+def _guarded(run: Path, what: str, fn, *args) -> str:
+    """A section from files a user may have edited or damaged: its error is shown in its place, and
+    the rest of the page is still written."""
+    try:
+        return fn(*args)
+    except (OSError, ValueError, TypeError, AttributeError, KeyError, IndexError) as e:
+        return _damaged(run, what, e)
+
+
 def _num(v) -> str:
     try:
         return f"{float(v):.3f}"
@@ -271,7 +286,12 @@ def _no_rate(report: dict) -> str:
 def render(run_dir: str | Path, *, max_samples: int = MAX_SAMPLES) -> str:
     """The report page of ``run_dir`` as HTML text (writes the full-size sample images beside it)."""
     run = Path(run_dir)
-    report = _read(run / "run.json") or {}
+    report = _read(run / "run.json")
+    if not isinstance(report, dict) or not all(isinstance(report.get(k, {}), dict) for k in ("throughput", "rejected")) \
+            or not all(isinstance(s, dict) for s in report.get("stages", [])):
+        if report is not None:
+            log.warning("%s/run.json is not a scansynth run report; the page leaves it out", run)
+        report = {}
     tp = report.get("throughput", {})
     stages = report.get("stages", [])
     from pipeline import report as run_report
@@ -287,7 +307,10 @@ def render(run_dir: str | Path, *, max_samples: int = MAX_SAMPLES) -> str:
     chart = stage_chart(stages)
     chart_html = (f'<img src="{_data_uri(chart, "image/png")}" alt="seconds per stage">' if chart
                   else "<p class=muted>No stage has run yet (run.json is missing).</p>")
-    samples_html, notes = _samples(run, max_samples)
+    try:
+        samples_html, notes = _samples(run, max_samples)
+    except (OSError, ValueError, TypeError, AttributeError, KeyError, IndexError, UserError) as e:
+        samples_html, notes = _damaged(run, "sample images", e), []
     if notes:
         samples_html += "<p class=bad>" + "<br>".join(_e(n) for n in notes) + "</p>"
     seed = ""
@@ -312,9 +335,9 @@ def render(run_dir: str | Path, *, max_samples: int = MAX_SAMPLES) -> str:
 <section><h2>Summary</h2><div class="tiles">{tiles}</div></section>
 <section><h2>Seconds per stage</h2>{chart_html}</section>
 <section><h2>Sample images</h2>{samples_html}</section>
-<section><h2>What was thrown away, and why</h2>{_rejections(report, run)}</section>
-<section><h2>Scans</h2>{_scans(run)}</section>
-<section><h2>Objects</h2>{_objects(run)}</section>
+<section><h2>What was thrown away, and why</h2>{_guarded(run, "rejections", _rejections, report, run)}</section>
+<section><h2>Scans</h2>{_guarded(run, "scans", _scans, run)}</section>
+<section><h2>Objects</h2>{_guarded(run, "objects", _objects, run)}</section>
 <section><h2>Lighting</h2><p class=muted>Recovered room lights are not estimated yet; this panel shows
 them once light recovery lands.</p></section>
 </main></body></html>

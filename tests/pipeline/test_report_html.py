@@ -167,3 +167,32 @@ def test_the_page_says_why_there_is_no_rate(tmp_path, stages, why):
         (tmp_path / "run.json").write_text(json.dumps({"seconds": 1.0, "throughput": {"images": 0},
                                                        "stages": stages}))
     assert f"images/hour ({why})" in write_report(tmp_path).read_text(encoding="utf-8")
+
+
+@pytest.mark.parametrize("name, doc", [
+    ("run.json", [1, 2]),
+    ("run.json", {"rejected": [1], "stages": "x"}),
+    ("ingest/s/scan.json", {"meta": [1]}),
+    ("select/s/selection.json", {"frames": [{"scores": [1]}]}),
+    ("select/s/selection.json", "text"),
+    ("prep/_items/objects.done.json", {"objects": [1]}),
+    ("raster/summary.json", {"rejected_frames": [2]}),
+    ("simulate/s/drop0000.json", 3),
+])
+def test_a_damaged_file_costs_its_section_not_the_page(tmp_path, capsys, name, doc):
+    """A run folder file that is not what its stage writes: `scansynth report` still writes the page
+    (exit 0, no traceback), and the report's rejection summary for run.json does not raise."""
+    from pipeline.cli import main
+    from pipeline.report import rejected
+
+    (tmp_path / "config.toml").write_text("[run]\nseed = 0\n")
+    (tmp_path / "ingest" / "s").mkdir(parents=True)
+    (tmp_path / "ingest" / "s" / "scan.json").write_text(json.dumps({"format": "7scenes", "meta": {}}))
+    path = tmp_path / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc))
+    assert main(["report", str(tmp_path), "-q"]) == 0
+    assert "Traceback" not in capsys.readouterr().err
+    text = (tmp_path / "report.html").read_text(encoding="utf-8")
+    assert "<h2>Summary</h2>" in text and "<h2>Objects</h2>" in text
+    assert isinstance(rejected(tmp_path), dict)
