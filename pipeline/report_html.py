@@ -79,6 +79,18 @@ def _table(header: list[str], rows: list[list], numeric: set[int] = frozenset())
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
+FOLD_ROWS = 10   # longer lists are folded (one click shows them) so the page stays readable
+
+
+def _folded(header: list[str], rows: list[list]) -> str:
+    """A table, folded behind a one-line summary when it has more than FOLD_ROWS rows."""
+    if len(rows) <= FOLD_ROWS:
+        return _table(header, rows)
+    first = ", ".join(str(r[0]) for r in rows[:3])
+    return (f"<details><summary>show all {len(rows)} ({_e(first)}, ...)</summary>"
+            + _table(header, rows) + "</details>")
+
+
 def stage_chart(stages: list[dict]) -> bytes | None:
     """PNG bar chart of seconds per stage (``run.json`` stage entries), or None with no stage."""
     if not stages:
@@ -171,13 +183,13 @@ def _rejections(report: dict, run: Path) -> str:
                                                    else "<p class=ok>None.</p>"))
     drops = rej.get("drops", {})
     parts.append(f"<h3>Rejected drops ({len(drops)})</h3>" + (
-        _table(["drop", "verdict"], [[k, v] for k, v in drops.items()]) if drops else "<p class=ok>None.</p>"))
+        _folded(["drop", "verdict"], [[k, v] for k, v in drops.items()]) if drops else "<p class=ok>None.</p>"))
     frames = rej.get("frames", {})
     parts.append(f"<h3>Frames rejected after the drop ({len(frames)})</h3>" + (
-        _table(["frame", "reason"], [[k, v] for k, v in frames.items()]) if frames else "<p class=ok>None.</p>"))
+        _folded(["frame", "reason"], [[k, v] for k, v in frames.items()]) if frames else "<p class=ok>None.</p>"))
     left = rej.get("export", {})
     parts.append(f"<h3>Frames left out of the dataset ({len(left)})</h3>" + (
-        _table(["frame", "reason"], [[k, v] for k, v in left.items()]) if left else "<p class=ok>None.</p>"))
+        _folded(["frame", "reason"], [[k, v] for k, v in left.items()]) if left else "<p class=ok>None.</p>"))
     return "".join(parts)
 
 

@@ -196,3 +196,12 @@ def test_a_damaged_file_costs_its_section_not_the_page(tmp_path, capsys, name, d
     text = (tmp_path / "report.html").read_text(encoding="utf-8")
     assert "<h2>Summary</h2>" in text and "<h2>Objects</h2>" in text
     assert isinstance(rejected(tmp_path), dict)
+
+
+def test_a_long_list_of_rejected_frames_is_folded_but_complete(tmp_path):
+    (tmp_path / "config.toml").write_text("[run]\nseed = 0\n")
+    frames = {f"s/drop0000/f{i:06d}": f"reason {i}" for i in range(25)}
+    (tmp_path / "run.json").write_text(json.dumps({"rejected": {"frames": frames}, "stages": []}))
+    text = write_report(tmp_path).read_text(encoding="utf-8")
+    folded = text[text.index("<details><summary>show all 25"):]
+    assert all(f"<td>{k}</td><td>{v}</td>" in folded for k, v in frames.items())
