@@ -9,7 +9,9 @@ box or mask shows up as a misdrawn overlay, so the sheet also checks the annotat
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -82,38 +84,81 @@ def draw_annotations(rgb: np.ndarray, scene_dir: Path, im_id: int, gts: list, in
     return img[..., ::-1]
 
 
-def contact_sheet(dataset: Path, *, max_images: int = 12, columns: int = 4, tile_width: int = 320) -> np.ndarray:
-    """(H, W, 3) uint8 sheet of up to ``max_images`` annotated images, evenly spread over the dataset."""
-    import cv2
+class Sample(NamedTuple):
+    """One dataset image picked for a sheet or report, drawn from its written annotations."""
 
+    scene_dir: Path
+    im_id: int
+    image: np.ndarray | None    # (H, W, 3) uint8 RGB with overlays; None when it could not be read
+    gts: list                   # this image's scene_gt.json entries
+    infos: list                 # this image's scene_gt_info.json entries
+    problem: str = ""           # why ``image`` is None
+
+
+def pick(n: int, max_images: int) -> np.ndarray:
+    """Indices of up to ``max_images`` of ``n`` images, evenly spread."""
+    if n == 0:
+        return np.zeros(0, np.int64)
+    return np.unique(np.linspace(0, n - 1, min(max_images, n)).round().astype(np.int64))
+
+
+def annotated_samples(dataset: Path, max_images: int) -> tuple[int, Iterator[Sample]]:
+    """The number of images in ``dataset`` and an iterator over up to ``max_images`` of them (evenly
+    spread), each with masks, boxes and axes drawn by :func:`draw_annotations`. Shared by the contact
+    sheet and the run report (``pipeline/report_html.py``)."""
     images = _images(dataset)
-    if not images:
-        raise UserError(f"{dataset}: the dataset has no images (every frame was rejected?); "
-                        f"see run.json for the reasons")
-    pick = np.unique(np.linspace(0, len(images) - 1, min(max_images, len(images))).round().astype(int))
     models_info = {}
     mi = dataset / "models" / "models_info.json"
     if mi.is_file():
         models_info = read_json(mi)
-    cache: dict[Path, tuple] = {}
+
+    def gen() -> Iterator[Sample]:
+        import cv2
+
+        cache: dict[Path, tuple] = {}
+        for idx in pick(len(images), max_images):
+            scene_dir, im_id = images[idx]
+            if scene_dir not in cache:
+                cache[scene_dir] = tuple(read_json(p) if p.is_file() else {} for p in
+                                         (scene_dir / n for n in ("scene_gt.json", "scene_gt_info.json",
+                                                                  "scene_camera.json")))
+            gt, info, cam = cache[scene_dir]
+            key = str(im_id)
+            gts, infos = gt.get(key, []), info.get(key, [])
+            rgb_path = next((p for p in (scene_dir / "rgb" / f"{im_id:06d}{ext}" for ext in (".jpg", ".png"))
+                             if p.is_file()), None)
+            bgr = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR) if rgb_path is not None else None
+            if bgr is None:
+                yield Sample(scene_dir, im_id, None, gts, infos,
+                             f"{scene_dir}/rgb: image {im_id:06d} is listed in scene_gt.json but missing "
+                             f"or unreadable")
+                continue
+            if key not in cam:
+                yield Sample(scene_dir, im_id, None, gts, infos,
+                             f"{scene_dir}/scene_camera.json: no entry for image {im_id:06d}")
+                continue
+            yield Sample(scene_dir, im_id, draw_annotations(bgr[..., ::-1], scene_dir, im_id, gts, infos,
+                                                            cam[key], models_info), gts, infos)
+
+    return len(images), gen()
+
+
+def contact_sheet(dataset: Path, *, max_images: int = 12, columns: int = 4, tile_width: int = 320) -> np.ndarray:
+    """(H, W, 3) uint8 sheet of up to ``max_images`` annotated images, evenly spread over the dataset."""
+    import cv2
+
+    n, samples = annotated_samples(dataset, max_images)
+    if not n:
+        raise UserError(f"{dataset}: the dataset has no images (every frame was rejected?); "
+                        f"see run.json for the reasons")
     tiles = []
-    for idx in pick:
-        scene_dir, im_id = images[idx]
-        if scene_dir not in cache:
-            cache[scene_dir] = (read_json(scene_dir / "scene_gt.json"),
-                                read_json(scene_dir / "scene_gt_info.json"),
-                                read_json(scene_dir / "scene_camera.json"))
-        gt, info, cam = cache[scene_dir]
-        key = str(im_id)
-        rgb_path = next((p for p in (scene_dir / "rgb" / f"{im_id:06d}{ext}" for ext in (".jpg", ".png"))
-                         if p.is_file()), None)
-        if rgb_path is None:
-            raise UserError(f"{scene_dir}/rgb: image {im_id:06d} is listed in scene_gt.json but missing")
-        rgb = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR)[..., ::-1]
-        tile = draw_annotations(rgb, scene_dir, im_id, gt[key], info.get(key, []), cam[key], models_info)
+    for s in samples:
+        if s.image is None:
+            raise UserError(s.problem)
+        tile = s.image
         h = int(round(tile.shape[0] * tile_width / tile.shape[1]))
         tile = cv2.resize(tile, (tile_width, h), interpolation=cv2.INTER_AREA)
-        label = f"{scene_dir.name}/{im_id:06d}"
+        label = f"{s.scene_dir.name}/{s.im_id:06d}"
         cv2.putText(tile, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
         tiles.append(tile)
     th = max(t.shape[0] for t in tiles)

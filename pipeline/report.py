@@ -21,10 +21,15 @@ log = logging.getLogger(__name__)
 
 
 def _read(path: Path) -> dict | None:
+    """A JSON object, or None for a file that is missing, unreadable or not an object (damaged)."""
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        doc = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
+    if not isinstance(doc, dict):
+        log.warning("%s: not a JSON object; left out of the run report", path)
+        return None
+    return doc
 
 
 def rejected(run_dir: str | Path) -> dict:
@@ -43,8 +48,9 @@ def rejected(run_dir: str | Path) -> dict:
         if doc is None:
             continue
         counts: dict[str, int] = {}
-        for f in doc.get("frames", []):
-            if not f.get("kept"):
+        frames = doc.get("frames")
+        for f in frames if isinstance(frames, list) else []:
+            if isinstance(f, dict) and not f.get("kept"):
                 reason = str(f.get("reason") or "not kept")
                 counts[reason] = counts.get(reason, 0) + 1
         select[p.parent.name] = dict(sorted(counts.items()))
@@ -55,8 +61,12 @@ def rejected(run_dir: str | Path) -> dict:
             drops[f"{p.parent.name}/{p.stem}"] = str(doc["verdict"])
     raster = _read(run / "raster" / "summary.json") or {}
     export = _read(run / "export" / "summary.json") or {}
-    return {"select": select, "drops": drops, "frames": dict(raster.get("rejected_frames", {})),
-            "export": dict(export.get("left_out", {}))}
+    return {"select": select, "drops": drops, "frames": _mapping(raster.get("rejected_frames")),
+            "export": _mapping(export.get("left_out"))}
+
+
+def _mapping(v) -> dict:
+    return dict(v) if isinstance(v, dict) else {}
 
 
 def images(run_dir: str | Path) -> int:

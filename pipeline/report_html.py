@@ -33,6 +33,8 @@ REPORT_NAME = "report.html"
 ASSETS_DIR = "report"          # RUN/report/: full-size annotated sample images
 MAX_SAMPLES = 12
 THUMB_WIDTH = 320
+# Frame-selection scores (selection.json) in the order the table shows them; others follow by name.
+SCORE_ORDER = ("relative", "blur_effect", "detail", "noise", "brightness", "contrast", "angle_deg", "travel_m")
 
 STYLE = """
 body{font:14px/1.45 system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0;background:#f6f7f9;color:#1d2330}
@@ -40,7 +42,7 @@ header{background:#1d2330;color:#fff;padding:18px 28px}header h1{margin:0;font-s
 header p{margin:4px 0 0;color:#b8c0cf;font-size:13px}
 main{padding:8px 28px 40px;max-width:1400px}
 section{background:#fff;border:1px solid #e1e4ea;border-radius:8px;margin:18px 0;padding:14px 18px}
-h2{font-size:17px;margin:2px 0 10px}h3{font-size:15px;margin:14px 0 6px}
+h2{font-size:17px;margin:2px 0 10px}h3{font-size:15px;margin:14px 0 6px}h4{font-size:13px;margin:10px 0 4px}
 .tiles{display:flex;flex-wrap:wrap;gap:12px}
 .stat{background:#f0f3f8;border-radius:6px;padding:8px 14px;min-width:120px}
 .stat b{display:block;font-size:22px}.stat span{color:#5b6475;font-size:12px}
@@ -77,6 +79,18 @@ def _table(header: list[str], rows: list[list], numeric: set[int] = frozenset())
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
+FOLD_ROWS = 10   # longer lists are folded (one click shows them) so the page stays readable
+
+
+def _folded(header: list[str], rows: list[list]) -> str:
+    """A table, folded behind a one-line summary when it has more than FOLD_ROWS rows."""
+    if len(rows) <= FOLD_ROWS:
+        return _table(header, rows)
+    first = ", ".join(str(r[0]) for r in rows[:3])
+    return (f"<details><summary>show all {len(rows)} ({_e(first)}, ...)</summary>"
+            + _table(header, rows) + "</details>")
+
+
 def stage_chart(stages: list[dict]) -> bytes | None:
     """PNG bar chart of seconds per stage (``run.json`` stage entries), or None with no stage."""
     if not stages:
@@ -106,53 +120,49 @@ def stage_chart(stages: list[dict]) -> bytes | None:
 
 
 def _samples(run: Path, max_samples: int) -> tuple[str, list[str]]:
-    """HTML of the sample grid and the notes on what could not be drawn."""
+    """HTML of the sample grid and the notes on what could not be drawn. Writes the full-size annotated
+    images to ``RUN/report/`` and removes the ones an earlier invocation wrote that are not shown now."""
     import cv2
 
-    from pipeline.preview import _images, draw_annotations
+    from pipeline.preview import annotated_samples
 
     notes: list[str] = []
     dataset = run / "export" / "dataset"
-    if not (dataset / "train_pbr").is_dir():
-        return "<p class=muted>No dataset yet (the export stage has not run).</p>", notes
-    images = _images(dataset)
-    if not images:
-        return "<p class=muted>The dataset has no images: every frame was rejected (see below).</p>", notes
-    pick = np.unique(np.linspace(0, len(images) - 1, min(max_samples, len(images))).round().astype(int))
-    models_info = _read(dataset / "models" / "models_info.json") or {}
-    cache: dict[Path, tuple] = {}
-    figs = []
-    for idx in pick:
-        scene_dir, im_id = images[idx]
-        if scene_dir not in cache:
-            cache[scene_dir] = tuple(_read(scene_dir / n) or {} for n in
-                                     ("scene_gt.json", "scene_gt_info.json", "scene_camera.json"))
-        gt, info, cam = cache[scene_dir]
-        key = str(im_id)
-        rgb_path = next((p for p in (scene_dir / "rgb" / f"{im_id:06d}{ext}" for ext in (".jpg", ".png"))
-                         if p.is_file()), None)
-        bgr = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR) if rgb_path is not None else None
-        if bgr is None or key not in cam:
-            notes.append(f"{scene_dir.name}/{im_id:06d}: image or camera missing from the dataset")
-            continue
-        full = draw_annotations(bgr[..., ::-1], scene_dir, im_id, gt.get(key, []), info.get(key, []),
-                                cam[key], models_info)
-        name = f"{scene_dir.parent.name}_{scene_dir.name}_{im_id:06d}.jpg"
-        rel = f"{ASSETS_DIR}/{name}"
-        atomic_write_bytes(run / rel, encode_image(run / rel, full, jpeg_quality=92))
-        h = int(round(full.shape[0] * THUMB_WIDTH / full.shape[1]))
-        thumb = cv2.resize(full, (THUMB_WIDTH, h), interpolation=cv2.INTER_AREA)
-        ok, jpg = cv2.imencode(".jpg", np.ascontiguousarray(thumb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 85])
-        objs = ", ".join(str(g["obj_id"]) for g in gt.get(key, []))
-        visib = [float(i.get("visib_fract", 0.0)) for i in info.get(key, [])]
-        cap = (f"{scene_dir.name}/{im_id:06d}: {len(gt.get(key, []))} objects ({objs})"
-               + (f", visible {min(visib):.0%}-{max(visib):.0%}" if visib else ""))
-        figs.append(f'<figure><a href="{_e(rel)}"><img src="{_data_uri(jpg.tobytes(), "image/jpeg")}" '
-                    f'alt="{_e(cap)}"></a><figcaption>{_e(cap)}</figcaption></figure>')
-    text = (f"<p>{len(figs)} of {len(images)} images, evenly spread; outlines: visible masks "
-            f"(<code>mask_visib</code>), rectangles: <code>bbox_visib</code>, axes: the pose "
-            f"(x red, y green, z blue, half the model's diameter). Click an image for full size.</p>")
-    return text + '<div class="grid">' + "".join(figs) + "</div>", notes
+    assets = run / ASSETS_DIR
+    written: set[str] = set()
+    try:
+        if not (dataset / "train_pbr").is_dir():
+            return "<p class=muted>No dataset yet (the export stage has not run).</p>", notes
+        n_images, samples = annotated_samples(dataset, max_samples)
+        if not n_images:
+            return "<p class=muted>The dataset has no images: every frame was rejected (see below).</p>", notes
+        figs = []
+        for s in samples:
+            if s.image is None:
+                notes.append(s.problem)
+                continue
+            # PNG: JPEG's chroma subsampling smears the 1-px coloured outlines the full size is for
+            name = f"{s.scene_dir.parent.name}_{s.scene_dir.name}_{s.im_id:06d}.png"
+            rel = f"{ASSETS_DIR}/{name}"
+            atomic_write_bytes(run / rel, encode_image(run / rel, s.image))
+            written.add(name)
+            h = int(round(s.image.shape[0] * THUMB_WIDTH / s.image.shape[1]))
+            thumb = cv2.resize(s.image, (THUMB_WIDTH, h), interpolation=cv2.INTER_AREA)
+            _, jpg = cv2.imencode(".jpg", np.ascontiguousarray(thumb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 85])
+            objs = ", ".join(str(g.get("obj_id", "?")) for g in s.gts)
+            visib = [float(i.get("visib_fract", 0.0)) for i in s.infos]
+            cap = (f"{s.scene_dir.name}/{s.im_id:06d}: {len(s.gts)} objects ({objs})"
+                   + (f", visible {min(visib):.0%}-{max(visib):.0%}" if visib else ""))
+            figs.append(f'<figure><a href="{_e(rel)}"><img src="{_data_uri(jpg.tobytes(), "image/jpeg")}" '
+                        f'alt="{_e(cap)}"></a><figcaption>{_e(cap)}</figcaption></figure>')
+        text = (f"<p>{len(figs)} of {n_images} images, evenly spread; outlines: visible masks "
+                f"(<code>mask_visib</code>), rectangles: <code>bbox_visib</code>, axes: the pose "
+                f"(x red, y green, z blue, half the model's diameter). Click an image for full size.</p>")
+        return text + '<div class="grid">' + "".join(figs) + "</div>", notes
+    finally:
+        for old in [*assets.glob("*.png"), *assets.glob("*.jpg")] if assets.is_dir() else ():
+            if old.name not in written:   # an earlier invocation's sample that is not on the page now
+                old.unlink(missing_ok=True)
 
 
 def _rejections(report: dict, run: Path) -> str:
@@ -173,13 +183,13 @@ def _rejections(report: dict, run: Path) -> str:
                                                    else "<p class=ok>None.</p>"))
     drops = rej.get("drops", {})
     parts.append(f"<h3>Rejected drops ({len(drops)})</h3>" + (
-        _table(["drop", "verdict"], [[k, v] for k, v in drops.items()]) if drops else "<p class=ok>None.</p>"))
+        _folded(["drop", "verdict"], [[k, v] for k, v in drops.items()]) if drops else "<p class=ok>None.</p>"))
     frames = rej.get("frames", {})
     parts.append(f"<h3>Frames rejected after the drop ({len(frames)})</h3>" + (
-        _table(["frame", "reason"], [[k, v] for k, v in frames.items()]) if frames else "<p class=ok>None.</p>"))
+        _folded(["frame", "reason"], [[k, v] for k, v in frames.items()]) if frames else "<p class=ok>None.</p>"))
     left = rej.get("export", {})
     parts.append(f"<h3>Frames left out of the dataset ({len(left)})</h3>" + (
-        _table(["frame", "reason"], [[k, v] for k, v in left.items()]) if left else "<p class=ok>None.</p>"))
+        _folded(["frame", "reason"], [[k, v] for k, v in left.items()]) if left else "<p class=ok>None.</p>"))
     return "".join(parts)
 
 
@@ -195,29 +205,66 @@ def _scans(run: Path) -> str:
                  ["frames read / kept after reading", f"{meta.get('frames_read', '?')} / {meta.get('frames_kept', '?')}"],
                  ["image size", f"{doc.get('width', '?')} x {doc.get('height', '?')}"],
                  ["room mesh", f"{meta.get('mesh', '?')} ({meta.get('mesh_faces', '?')} faces)"],
-                 ["up", meta.get("up_source", "?")],
-                 ["colour-depth registration", meta.get("registration", "not recorded")]]
-        for k, v in (meta.get("registration_figures") or {}).items():   # colour camera estimation
-            facts.append([f"registration: {k}", v])
+                 ["up", meta.get("up_source", "?")]]
+        if meta.get("registration"):
+            facts.append(["colour-depth registration", meta["registration"]])
         skipped = {k: v for k, v in (meta.get("skipped") or {}).items() if v}
         if skipped:
             facts.append(["frames skipped on reading", ", ".join(f"{k}: {v}" for k, v in skipped.items())])
         for w in meta.get("warnings", []):
             facts.append(["warning", w])
-        block = f"<h3>{_e(scene)}</h3>" + _table(["", ""], facts)
+        block = f"<h3>{_e(scene)}</h3>" + _table(["", ""], facts) + _registration(meta)
         sel = _read(run / "select" / scene / "selection.json")
         if sel:
             frames = sel.get("frames", [])
             kept = sum(1 for f in frames if f.get("kept"))
-            keys = ["relative", "blur_effect", "brightness", "contrast", "angle_deg", "travel_m"]
+            # every score the selection recorded, in the order of SCORE_ORDER, then the rest by name
+            found = {k for f in frames for k in (f.get("scores") or {})}
+            keys = [k for k in SCORE_ORDER if k in found] + sorted(found - set(SCORE_ORDER))
             rows = [[f.get("frame_id"), "kept" if f.get("kept") else "dropped", f.get("reason", "")]
-                    + [f"{float(f.get('scores', {}).get(k, float('nan'))):.3f}" for k in keys] for f in frames]
+                    + [_num((f.get("scores") or {}).get(k)) for k in keys] for f in frames]
             block += (f"<details><summary>Frame selection: {kept} of {len(frames)} frames kept "
                       f"(method {_e(sel.get('method', '?'))})</summary>"
                       + _table(["frame", "", "reason", *keys], rows, set(range(3, 3 + len(keys))))
                       + "</details>")
         out.append(block)
     return "".join(out)
+
+
+def _damaged(run: Path, what: str, e: Exception) -> str:
+    log.warning("report: %s of %s could not be drawn (%s: %s)", what, run, type(e).__name__, e)
+    return (f"<p class=bad>The {_e(what)} could not be drawn: a file of this run folder is damaged or from "
+            f"another version ({_e(type(e).__name__)}: {_e(e)}). Re-run the stage that wrote it.</p>")
+
+
+def _guarded(run: Path, what: str, fn, *args) -> str:
+    """A section from files a user may have edited or damaged: its error is shown in its place, and
+    the rest of the page is still written."""
+    try:
+        return fn(*args)
+    except (OSError, ValueError, TypeError, AttributeError, KeyError, IndexError) as e:
+        return _damaged(run, what, e)
+
+
+def _num(v) -> str:
+    try:
+        return f"{float(v):.3f}"
+    except (TypeError, ValueError):
+        return "" if v is None else str(v)
+
+
+def _registration(meta: dict) -> str:
+    """Colour-depth registration figures of one scan (``scan.json`` meta ``registration_figures``).
+
+    The hook for the registration issue: ingest records no figures yet, so this section is left out;
+    once ingest writes ``meta["registration_figures"]`` as ``{name: value}`` (a number or text, e.g.
+    the estimated colour focal length and the edge alignment before/after), they appear here as a table.
+    """
+    figs = meta.get("registration_figures")
+    if not isinstance(figs, dict) or not figs:
+        return ""
+    return "<h4>Colour-depth registration</h4>" + _table(["figure", "value"],
+                                                          [[k, _num(v)] for k, v in figs.items()], {1})
 
 
 def _objects(run: Path) -> str:
@@ -235,10 +282,28 @@ def _objects(run: Path) -> str:
     return _table(["id", "name", "mass g", "mass properties from", "what it took"], rows, {2})
 
 
+def _no_rate(report: dict) -> str:
+    """Why run.json has no images per hour (``pipeline.report.throughput`` gives it only for a fresh run
+    through export)."""
+    stages = report.get("stages", [])
+    if not report:
+        return "no run.json yet"
+    if any(int(s.get("skipped", 0)) for s in stages):
+        return "resumed run: not measured"
+    if not any(s.get("stage") == "export" for s in stages):
+        return "export did not run in the last invocation"
+    return "no image made"
+
+
 def render(run_dir: str | Path, *, max_samples: int = MAX_SAMPLES) -> str:
     """The report page of ``run_dir`` as HTML text (writes the full-size sample images beside it)."""
     run = Path(run_dir)
-    report = _read(run / "run.json") or {}
+    report = _read(run / "run.json")
+    if not isinstance(report, dict) or not all(isinstance(report.get(k, {}), dict) for k in ("throughput", "rejected")) \
+            or not all(isinstance(s, dict) for s in report.get("stages", [])):
+        if report is not None:
+            log.warning("%s/run.json is not a scansynth run report; the page leaves it out", run)
+        report = {}
     tp = report.get("throughput", {})
     stages = report.get("stages", [])
     from pipeline import report as run_report
@@ -246,7 +311,7 @@ def render(run_dir: str | Path, *, max_samples: int = MAX_SAMPLES) -> str:
     n_images = tp.get("images", run_report.images(run))
     rate = tp.get("images_per_hour")
     stats = [(n_images, "images in the dataset"),
-             (f"{rate:.0f}" if rate else "-", "images per hour" if rate else "images/hour (resumed run: not measured)"),
+             (f"{rate:.0f}" if rate else "-", "images per hour" if rate else f"images/hour ({_no_rate(report)})"),
              (f"{float(report.get('seconds', 0.0)):.0f} s" if report else "-", "wall time, last invocation"),
              (report.get("failed", "-"), "failed items"),
              (report.get("input_problems", "-"), "inputs left out")]
@@ -254,7 +319,10 @@ def render(run_dir: str | Path, *, max_samples: int = MAX_SAMPLES) -> str:
     chart = stage_chart(stages)
     chart_html = (f'<img src="{_data_uri(chart, "image/png")}" alt="seconds per stage">' if chart
                   else "<p class=muted>No stage has run yet (run.json is missing).</p>")
-    samples_html, notes = _samples(run, max_samples)
+    try:
+        samples_html, notes = _samples(run, max_samples)
+    except (OSError, ValueError, TypeError, AttributeError, KeyError, IndexError, UserError) as e:
+        samples_html, notes = _damaged(run, "sample images", e), []
     if notes:
         samples_html += "<p class=bad>" + "<br>".join(_e(n) for n in notes) + "</p>"
     seed = ""
@@ -264,9 +332,12 @@ def render(run_dir: str | Path, *, max_samples: int = MAX_SAMPLES) -> str:
 
         try:
             c = tomllib.loads(cfg.read_text(encoding="utf-8"))
-            seed = (f"seed {c.get('run', {}).get('seed', '?')}; scans "
-                    f"{', '.join(map(str, c.get('scan', {}).get('paths', [])))}; objects "
-                    f"{', '.join(map(str, c.get('objects', {}).get('paths', [])))}")
+            parts = [f"seed {c.get('run', {}).get('seed', '?')}"]
+            for label, table in (("scans", "scan"), ("objects", "objects")):
+                paths = c.get(table, {}).get("paths", [])
+                if paths:
+                    parts.append(f"{label} {', '.join(map(str, paths))}")
+            seed = "; ".join(parts)
         except (OSError, ValueError):
             seed = "config.toml could not be read"
     return f"""<!DOCTYPE html>
@@ -276,9 +347,9 @@ def render(run_dir: str | Path, *, max_samples: int = MAX_SAMPLES) -> str:
 <section><h2>Summary</h2><div class="tiles">{tiles}</div></section>
 <section><h2>Seconds per stage</h2>{chart_html}</section>
 <section><h2>Sample images</h2>{samples_html}</section>
-<section><h2>What was thrown away, and why</h2>{_rejections(report, run)}</section>
-<section><h2>Scans</h2>{_scans(run)}</section>
-<section><h2>Objects</h2>{_objects(run)}</section>
+<section><h2>What was thrown away, and why</h2>{_guarded(run, "rejections", _rejections, report, run)}</section>
+<section><h2>Scans</h2>{_guarded(run, "scans", _scans, run)}</section>
+<section><h2>Objects</h2>{_guarded(run, "objects", _objects, run)}</section>
 <section><h2>Lighting</h2><p class=muted>Recovered room lights are not estimated yet; this panel shows
 them once light recovery lands.</p></section>
 </main></body></html>
