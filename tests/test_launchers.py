@@ -73,3 +73,30 @@ def test_launcher_before_setup_says_what_to_run(tmp_path, name):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1, r.stderr
     assert lines[0].startswith(f"{name}: not set up yet") and "bin/setup" in lines[0]
+
+
+def test_bin_scansynth_run_with_one_non_rigid_pose_among_12_frames(tmp_path):
+    """The issue's case through the launcher: 11 frames are ingested, the one bad pose is left out and
+    reported on the console and in run.json (exit 1: an input was left out; everything else is kept)."""
+    from tests.pipeline.test_scanformats import trajectory, write_7scenes, write_mat
+
+    scan = tmp_path / "scan"
+    write_7scenes(scan, n=12)
+    T = trajectory(12)[5]
+    T[:3, :3] *= 1.1  # |R^T R - I| = 0.21
+    write_mat(scan / "frame-000005.pose.txt", T)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f'[scan]\npaths = ["{scan}"]\n[ingest]\ntsdf_voxel = 0.08\ntsdf_trunc = 0.3\n'
+                   f'depth_max = 5.0\n[objects]\npaths = ["builtin:shapes"]\n')
+    out = tmp_path / "run"
+    r = _run(["bin/scansynth", "run", str(cfg), "--out", str(out), "--to", "ingest"])
+    assert r.returncode == 1, r.stderr
+    assert "Traceback" not in r.stderr
+    line = next(ln for ln in r.stderr.splitlines() if ln.startswith("LEFT OUT ingest scan: "))
+    assert "skipped 1 of 12 frame(s) that have a malformed pose or one that is not a rigid transform" in line
+    assert (f"{scan}/frame-000005.pose.txt: pose is not a rigid transform (det R = 1.3310, "
+            f"|R^T R - I| = 2.10e-01") in line
+    meta = json.loads((out / "ingest" / "scan" / "scan.json").read_text())
+    assert meta["num_frames"] == 11 and meta["meta"]["skipped"]["bad_pose"] == 1
+    report = json.loads((out / "run.json").read_text())
+    assert report["input_problems"] == 1 and report["failed"] == 0
