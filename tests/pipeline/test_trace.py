@@ -18,7 +18,7 @@ from pipeline.trace.lights import AreaLights, published_lights, srgb_to_linear
 from pipeline.trace.pbr import Camera, RenderSettings, ambient_occlusion, render, trace_mask
 from pipeline.trace.sampling import ggx_reflect_pdf, ggx_sample_vndf, reflect
 from pipeline.trace.scene import ObjectInstance, build_scene
-from pipeline.trace.shapes import box_room, grid_quad, look_at, quad, uv_sphere
+from tests.pipeline.shapes import box_room, grid_quad, look_at, quad, uv_sphere
 
 
 def sphere_object(radius=0.5, center=(0, 0, 0), albedo=1.0, **mat) -> ObjectInstance:

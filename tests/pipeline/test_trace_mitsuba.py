@@ -16,7 +16,7 @@ import pytest
 from pipeline.tolerances import TRACE_MITSUBA_REL_BIAS_MAX, TRACE_MITSUBA_REL_RMSE_MAX
 from pipeline.trace.pbr import Camera, RenderSettings, render
 from pipeline.trace.scene import ObjectInstance, build_scene
-from pipeline.trace.shapes import grid_quad, look_at, uv_sphere
+from tests.pipeline.shapes import grid_quad, look_at, uv_sphere
 
 pytestmark = pytest.mark.slow
 

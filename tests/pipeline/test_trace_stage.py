@@ -19,8 +19,8 @@ from pipeline.trace.denoise import denoise, denoise_ao, joint_bilateral, oidn_av
 from pipeline.trace.pbr import Camera
 from pipeline.trace.scene import ObjectInstance, build_scene
 from pipeline.trace.shadow import shadow_ratio
-from pipeline.trace.shapes import box_room, look_at, uv_sphere
 from pipeline.types import ObjectModel, Scan
+from tests.pipeline.shapes import box_room, look_at, uv_sphere
 
 # --------------------------------------------------------------------------------------------------
 # Shadow ratio

@@ -1,4 +1,4 @@
-"""Tiny analytic meshes for tests, reference scenes and benchmarks (NumPy only).
+"""Tiny analytic meshes for the tests' reference scenes (NumPy only; a test helper, not part of the product).
 
 Triangles are counter-clockwise seen from the side their normal points to.
 """
