@@ -87,7 +87,8 @@ def _make_views(tmp: Path, views: int):
     """
     from bench.common import SHARED_DATA
     from pipeline.config import build_config
-    from pipeline.ingest import ingest_scan, load_scan
+    from pipeline.ingest import ingest_scan
+    from pipeline.runfolder import load_scan
     from pipeline.objects import load_library
     from pipeline.scanformats.mesh import read_room_ply
     from pipeline.seeding import item_rng
@@ -656,7 +657,9 @@ def real_sheet(frames: int = 4, scale: float = 0.5) -> None:
     from bench.common import SHARED_DATA
     from pipeline.composite import composite_full, composite_published
     from pipeline.config import build_config
-    from pipeline.ingest import ingest_scan, load_scan, read_color
+    from pipeline.ingest import ingest_scan
+    from pipeline.runfolder import load_scan
+    from pipeline.scanformats.common import read_color
     from pipeline.io import atomic_write_image
     from pipeline.objects import load_library
     from pipeline.scanformats.mesh import read_room_ply

@@ -28,7 +28,9 @@ TRUNC_VOXELS = 4.0  # truncation = 4 voxels, as the default config (2 cm / 8 cm)
 
 def measure(scan_dir: Path, voxel: float, work: Path) -> dict:
     from pipeline.config import build_config
-    from pipeline.ingest import ingest_scan, load_room_mesh, read_depth
+    from pipeline.ingest import ingest_scan
+    from pipeline.runfolder import load_room_mesh
+    from pipeline.scanformats.common import read_depth
     from pipeline.reconstruct import depth_renderer
 
     cfg = build_config({"scan": {"paths": [str(scan_dir)]},

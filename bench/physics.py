@@ -29,7 +29,8 @@ def _room(cache: Path) -> tuple[dict, np.ndarray, dict]:
     from meshprep.proxy import room_distance_grid
 
     from pipeline.config import build_config
-    from pipeline.ingest import ingest_scan, load_room_mesh
+    from pipeline.ingest import ingest_scan
+    from pipeline.runfolder import load_room_mesh
 
     npz = cache / "room_proxy.npz"
     cfg = build_config({})

@@ -67,7 +67,8 @@ def replay_seconds(inner, calls) -> tuple[float, int]:
 
 def room_mesh(work: Path):
     from pipeline.config import build_config
-    from pipeline.ingest import ingest_scan, load_room_mesh
+    from pipeline.ingest import ingest_scan
+    from pipeline.runfolder import load_room_mesh
 
     scan = ingest_scan(SCAN, "redkitchen", work / "ingest" / "redkitchen", build_config({}))
     v, f, c = load_room_mesh(scan)

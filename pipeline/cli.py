@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from pipeline import __version__
-from pipeline.config import Config, ConfigError, config_to_dict, dump_config, load_config
+from pipeline.config import BUILTIN_PREFIX, Config, ConfigError, config_to_dict, dump_config, load_config
 from pipeline.errors import UserError
 from pipeline.io import atomic_write_bytes, atomic_write_json, read_json, remove_stale_temps
 from pipeline.stages import STAGE_ORDER, get_stage, stage_help
@@ -128,6 +128,33 @@ def init_run_dir(run_dir: Path, cfg: Config) -> None:
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(cfg_path, dump_config(cfg).encode("utf-8"))
     atomic_write_json(run_dir / META_NAME, {"seed": cfg.run.seed, "versions": package_versions()})
+    for p in cfg.scan.paths:
+        if p.startswith(BUILTIN_PREFIX):
+            generate_builtin_scan(run_dir, p[len(BUILTIN_PREFIX):])
+
+
+def generate_builtin_scan(run_dir: Path, name: str) -> Path:
+    """Generate built-in scan ``name`` into the run folder (once: an existing one is complete, as it only
+    appears by a rename, and is checked), so that ingest only ever reads folders."""
+    import shutil
+
+    from pipeline import runfolder
+
+    if name not in runfolder.BUILTIN_SCANS:
+        raise UserError(f"scan.paths: unknown built-in scan 'builtin:{name}'; valid: "
+                        f"{', '.join('builtin:' + n for n in runfolder.BUILTIN_SCANS)}")
+    from pipeline.synthscan import builtin_scan
+
+    final = runfolder.path(run_dir, runfolder.BUILTIN_SCAN_TPATH, name=name)
+    if final.is_dir():
+        return Path(builtin_scan(name, final))  # reused as it is when complete
+    # generate beside it and rename into place: a run killed mid-generation never leaves a partial scan
+    for stale in final.parent.glob(f"{name}.tmp-*"):
+        shutil.rmtree(stale, ignore_errors=True)
+    tmp = final.with_name(f"{name}.tmp-{os.getpid()}")
+    builtin_scan(name, tmp)
+    os.replace(tmp, final)
+    return final
 
 
 def open_run_dir(run_dir: Path, overrides: list[str]) -> Config:

@@ -37,14 +37,16 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
 
 from pipeline import camera_look as cl
 from pipeline.errors import InputError
+from pipeline.runfolder import (COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, FrameKey, load_raster_frame, load_scan,
+                                load_trace, raster_frames)
 from pipeline.runner import Item, Stage, StageContext
+from pipeline.scanformats.common import read_color
 
 log = logging.getLogger(__name__)
 
@@ -53,20 +55,6 @@ _FILL_RADIUS = 2         # pixels: window radius of the normalised-convolution c
 _BLUR_CROP_MARGIN = 24   # pixels around the objects where the photo's blur is measured
 _NOISE_BAND = (2, 12)    # pixels: ring around the objects (inner, outer) where photo noise is measured
 _SHADOW_RATIO_MAX = 4.0  # shadow ratios above this are clamped (a few noisy rays off a bright object)
-
-
-# ---------------------------------------------------------------------------------------------------
-# Paths
-# ---------------------------------------------------------------------------------------------------
-
-def image_path(run_dir: str | Path, scene: str, drop: int, frame: int) -> Path:
-    """``RUN/composite/<scene>/drop<NNNN>/f<frame:06d>.png`` (the path the export stage reads)."""
-    return Path(run_dir) / "composite" / scene / f"drop{drop:04d}" / f"f{frame:06d}.png"
-
-
-def depth_path(run_dir: str | Path, scene: str, drop: int, frame: int) -> Path:
-    """``RUN/composite/<scene>/drop<NNNN>/f<frame:06d>_depth.npz`` (key ``depth``, float32 metres)."""
-    return Path(run_dir) / "composite" / scene / f"drop{drop:04d}" / f"f{frame:06d}_depth.npz"
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -341,56 +329,31 @@ def composite_depth(labels: np.ndarray, object_depth: np.ndarray, real_depth: np
 # ---------------------------------------------------------------------------------------------------
 
 def plan(ctx: StageContext) -> list[Item]:
-    """One item per raster frame with status ok (the trace stage's items)."""
-    from pipeline.io import read_json
-
-    root = ctx.run_dir / "raster"
-    items = []
-    if not root.is_dir():
-        log.warning("composite: %s does not exist; run the raster and trace stages first", root)
-        return items
-    for js in sorted(root.glob("*/drop*/f*.json")):
-        if ".tmp-" in js.name or not js.with_suffix(".npz").is_file():
-            continue
-        try:
-            drop, frame = int(js.parent.name[4:]), int(js.stem[1:])
-        except ValueError:
-            continue
-        if read_json(js).get("status") != "ok":
-            continue
-        scene = js.parent.parent.name
-        items.append(Item(key=f"{scene}/{js.parent.name}/{js.stem}",
-                          data={"scene": scene, "drop": drop, "frame": frame}))
-    return items
+    """One item per raster frame with status ok (the frames the trace stage traced)."""
+    frames = raster_frames(ctx.run_dir)
+    if not frames:
+        log.warning("composite: no raster frame in %s; run the raster and trace stages first",
+                    ctx.run_dir / "raster")
+    return [Item(key=str(k), data={"scene": k.scene, "drop": k.drop, "frame": k.frame}) for k in frames]
 
 
 def run_item(ctx: StageContext, item: Item) -> dict:
-    from pipeline.ingest import load_scan, read_color
-    from pipeline.io import atomic_save_npz, atomic_write_image, load_npz, read_json
-    from pipeline.raster import frame_stem
-    from pipeline.trace.stage import load_trace
+    from pipeline.io import atomic_save_npz, atomic_write_image
 
     cfg = ctx.cfg.composite
-    scene, drop, frame = item.data["scene"], int(item.data["drop"]), int(item.data["frame"])
-    stem = frame_stem(ctx.run_dir, scene, drop, frame)
-    doc = read_json(stem.with_suffix(".json"))
-    if doc.get("status") != "ok" or not stem.with_suffix(".npz").is_file():
-        raise InputError(f"{stem}.json: frame status is {doc.get('status')!r}, not ok; re-run raster")
-    arr = load_npz(stem.with_suffix(".npz"))
-    if "written_depth" not in arr:
-        raise InputError(f"{stem}.npz has no written_depth: it was written by an older scansynth; delete "
-                         f"{stem.parent.parent.parent} and run again from the raster stage")
+    fk = FrameKey(item.data["scene"], int(item.data["drop"]), int(item.data["frame"]))
+    arr = load_raster_frame(ctx.run_dir, fk).arrays(masks=False)
     labels = arr["labels"]
     h, w = labels.shape
-    tr = load_trace(ctx.run_dir, scene, drop, frame)
+    tr = load_trace(ctx.run_dir, fk)
     for key in ("pbr", "ao", "coverage", "shadow_ratio"):
         if key not in tr:
             raise InputError(f"trace output of {item.key} has no {key!r} pass; re-run 'scansynth trace'")
         if tr[key].shape[:2] != (h, w):
             raise InputError(f"trace pass {key!r} of {item.key} is {tr[key].shape[:2]}, the raster frame is "
                              f"{(h, w)}; re-run trace after raster")
-    scan = load_scan(ctx.run_dir, scene)
-    photo = read_color(scan, frame)
+    scan = load_scan(ctx.run_dir, fk.scene)
+    photo = read_color(scan, fk.frame)
     if photo.shape[:2] != (h, w):
         photo = cv2.resize(photo, (w, h), interpolation=cv2.INTER_AREA)
     gain = cfg.exposure / ctx.cfg.trace.radiance_scale
@@ -412,8 +375,8 @@ def run_item(ctx: StageContext, item: Item) -> dict:
                 "photo_edge_sigma": None if np.isnan(res.photo_edge_sigma) else round(res.photo_edge_sigma, 4)}
     # The raster stage composed the dataset's depth (and judged visibility on it); write the same.
     depth = arr["written_depth"]
-    atomic_write_image(image_path(ctx.run_dir, scene, drop, frame), image)
-    atomic_save_npz(depth_path(ctx.run_dir, scene, drop, frame), depth=depth)
+    atomic_write_image(fk.path(ctx.run_dir, COMPOSITE_TPATH), image)
+    atomic_save_npz(fk.path(ctx.run_dir, COMPOSITE_DEPTH_TPATH), depth=depth)
     return {"mode": cfg.mode, **info}
 
 

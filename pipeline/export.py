@@ -38,11 +38,13 @@ import numpy as np
 from pipeline import export_bop, export_coco, export_yolo
 from pipeline.errors import InputError
 from pipeline.io import atomic_write_json, dumps_json, read_json
+from pipeline.runfolder import (COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, DATASET_DIR, FrameKey, load_objects,
+                                load_raster_frame, raster_frames)
 from pipeline.runner import Item, Stage, StageContext
 
 log = logging.getLogger(__name__)
 
-DATASET = "dataset"
+DATASET = Path(DATASET_DIR).name   # under RUN/export
 SPLIT = "train_pbr"
 FRAMES_DIR = "_frames"
 MERGED_COCO = "coco_train_pbr.json"
@@ -64,23 +66,12 @@ class Slot:
     im_id: int
     global_id: int   # COCO image id in the merged file (0-based position in the dataset)
 
-
-def raster_frames(run_dir: str | Path) -> list[tuple[str, int, int]]:
-    """``(scene, drop, frame)`` of every raster frame with status ok, sorted."""
-    root = Path(run_dir) / "raster"
-    out = []
-    if not root.is_dir():
-        return out
-    for p in sorted(root.glob("*/drop*/f*.json")):
-        if ".tmp-" in p.name:
-            continue
-        doc = read_json(p)
-        if doc.get("status") == "ok" and p.with_suffix(".npz").is_file():
-            out.append((doc["scene"], int(doc["drop"]), int(doc["frame"])))
-    return sorted(out)
+    @property
+    def key(self) -> FrameKey:
+        return FrameKey(self.scene, self.drop, self.frame)
 
 
-def assign_slots(frames: list[tuple[str, int, int]], chunk_size: int) -> list[Slot]:
+def assign_slots(frames: list[FrameKey], chunk_size: int) -> list[Slot]:
     """BOP scene folders and image ids: each scan scene starts a new folder; ``chunk_size`` per folder."""
     slots, bop_scene, k = [], -1, 0
     prev_scene = None
@@ -95,17 +86,7 @@ def assign_slots(frames: list[tuple[str, int, int]], chunk_size: int) -> list[Sl
 
 
 def _key(s: Slot) -> str:
-    return f"{s.scene}/drop{s.drop:04d}/f{s.frame:06d}/{s.bop_scene:06d}_{s.im_id:06d}"
-
-
-def composite_path(run_dir: Path, scene: str, drop: int, frame: int) -> Path:
-    """Composite colour image written by the composite stage (same path as pipeline.composite.image_path)."""
-    return run_dir / "composite" / scene / f"drop{drop:04d}" / f"f{frame:06d}.png"
-
-
-def composite_depth_path(run_dir: Path, scene: str, drop: int, frame: int) -> Path:
-    """Composite depth (NPZ key ``depth``, metres) written by the composite stage."""
-    return run_dir / "composite" / scene / f"drop{drop:04d}" / f"f{frame:06d}_depth.npz"
+    return f"{s.key}/{s.bop_scene:06d}_{s.im_id:06d}"
 
 
 def run_id(cfg) -> str:
@@ -141,14 +122,14 @@ def claim_dataset(ctx: StageContext) -> None:
     atomic_write_json(marker, {"run": rid})
 
 
-def exported_frames(run_dir: Path) -> tuple[list[tuple[str, int, int]], dict[str, str]]:
+def exported_frames(run_dir: Path) -> tuple[list[FrameKey], dict[str, str]]:
     """Raster frames that have a composite image, and the left-out ones ``{"scene/dropNNNN/fNNNNNN": reason}``."""
     keep, left_out = [], {}
-    for scene, drop, frame in raster_frames(run_dir):
-        if composite_path(run_dir, scene, drop, frame).is_file():
-            keep.append((scene, drop, frame))
+    for k in raster_frames(run_dir):
+        if k.path(run_dir, COMPOSITE_TPATH).is_file():
+            keep.append(k)
         else:
-            left_out[f"{scene}/drop{drop:04d}/f{frame:06d}"] = NO_COMPOSITE
+            left_out[str(k)] = NO_COMPOSITE
     return keep, left_out
 
 
@@ -164,22 +145,22 @@ def plan(ctx: StageContext) -> list[Item]:
 
 
 def scene_dir(run_dir: Path, bop_scene: int) -> Path:
-    return run_dir / "export" / DATASET / SPLIT / f"{bop_scene:06d}"
+    return Path(run_dir) / DATASET_DIR / SPLIT / f"{bop_scene:06d}"
 
 
 def run_item(ctx: StageContext, item: Item) -> dict:
     import cv2
 
     from pipeline.io import load_npz
-    from pipeline.raster import frame_stem, load_frame
 
     s = Slot(**item.data)
     cfg = ctx.cfg.export
-    doc, arr = load_frame(frame_stem(ctx.run_dir, s.scene, s.drop, s.frame))
-    if arr is None:
-        raise RuntimeError(f"raster frame {s.scene}/{s.drop}/{s.frame} is not ok: {doc.get('reason')}")
-    w, h = int(doc["width"]), int(doc["height"])
-    comp = composite_path(ctx.run_dir, s.scene, s.drop, s.frame)
+    raster = load_raster_frame(ctx.run_dir, s.key)
+    if raster.status != "ok":
+        raise RuntimeError(f"raster frame {s.key} is not ok: {raster.reason}")
+    doc, arr = raster.doc, raster.arrays()
+    w, h = raster.camera.width, raster.camera.height
+    comp = s.key.path(ctx.run_dir, COMPOSITE_TPATH)
     if not comp.is_file():
         raise RuntimeError(f"{comp} is missing (it was there when the export was planned); run the export again")
     bgr = cv2.imread(str(comp), cv2.IMREAD_COLOR)
@@ -188,15 +169,14 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     rgb, source = bgr[..., ::-1], "composite"
     if rgb.shape[:2] != (h, w):
         rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
-    comp_depth = composite_depth_path(ctx.run_dir, s.scene, s.drop, s.frame)
+    comp_depth = s.key.path(ctx.run_dir, COMPOSITE_DEPTH_TPATH)
     depth = load_npz(comp_depth)["depth"] if comp_depth.is_file() else None
     if depth is None or depth.shape != (h, w):
         depth = arr["written_depth"]   # the depth raster judged visibility on (the compositor writes it too)
     sd = scene_dir(ctx.run_dir, s.bop_scene)
     export_bop.write_image_files(sd, s.im_id, rgb=rgb, depth_m=depth, amodal=arr["amodal"], visib=arr["visib"],
                                  ext=cfg.image_format, depth_scale=cfg.depth_scale, jpeg_quality=cfg.jpeg_quality)
-    K = np.asarray(doc["K"], dtype=np.float64)
-    part = {"scene_camera": export_bop.scene_camera_entry(K, np.asarray(doc["T_c2w"]), cfg.depth_scale),
+    part = {"scene_camera": export_bop.scene_camera_entry(raster.camera.K, raster.camera.T_c2w, cfg.depth_scale),
             "scene_gt": export_bop.scene_gt_entries(doc["instances"]),
             "scene_gt_info": export_bop.scene_gt_info_entries(doc["instances"]),
             "coco": (export_coco.frame_annotations(doc["instances"], arr["visib"], arr["amodal"])
@@ -241,8 +221,6 @@ def remove_stale_images(ctx: StageContext, parts: dict[int, dict[int, dict]]) ->
 
 def finish(ctx: StageContext, results: dict[str, dict]) -> None:
     """Merge the per-image parts into the BOP, COCO and YOLO files; write models, camera.json, summary.json."""
-    from pipeline.ingest import load_objects
-
     cfg = ctx.cfg.export
     frames, left_out = exported_frames(ctx.run_dir)
     slots = assign_slots(frames, cfg.chunk_size)
@@ -256,7 +234,7 @@ def finish(ctx: StageContext, results: dict[str, dict]) -> None:
             parts.setdefault(s.bop_scene, {})[s.im_id] = part
         else:
             failed.append(_key(s))
-            left_out[f"{s.scene}/drop{s.drop:04d}/f{s.frame:06d}"] = "export item failed"
+            left_out[str(s.key)] = "export item failed"
     if failed:
         log.error("export: %d image(s) not exported (failed items), left out of the dataset: %s",
                   len(failed), ", ".join(failed[:5]))

@@ -13,41 +13,34 @@ The room mesh is the scan's own mesh converted (textured OBJ -> vertex colours),
 
 The objects item writes ``RUN/ingest/objects/obj_XXXXXX.npz`` + ``library.json`` (:mod:`pipeline.objects`).
 
-Loading API for later stages: :func:`list_scenes`, :func:`load_scan`, :func:`load_objects`,
-:func:`read_color`, :func:`read_depth`, :func:`load_room_mesh`.
+Later stages read these through :mod:`pipeline.runfolder`. A built-in scan (``builtin:demo``) is generated
+when the run folder is created (:func:`pipeline.cli.init_run_dir`); ingest reads it like any folder.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 import re
-import shutil
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.config import BUILTIN_PREFIX, Config
-from pipeline.errors import InputError, UserError
-from pipeline.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, load_npz, read_json
+from pipeline.errors import InputError
+from pipeline.io import atomic_write_bytes
+from pipeline.runfolder import RESERVED_SCENES, ROOM_PLY, builtin_scan_dir, save_scan
 from pipeline.runner import INPUT_PROBLEMS, Item, Stage, StageContext
-from pipeline.scanformats.common import (BadFrameWarning, IngestWarning, read_color, read_depth, select_frames,
-                                         subsample)
-from pipeline.scanformats.mesh import (canonical_order, check_mesh_covers_cameras, load_mesh_file, ply_bytes,
-                                       read_room_ply)
-from pipeline.types import ObjectModel, Scan
+from pipeline.scanformats.common import BadFrameWarning, IngestWarning, read_color, select_frames, subsample
+from pipeline.scanformats.mesh import canonical_order, check_mesh_covers_cameras, load_mesh_file, ply_bytes
+from pipeline.types import Scan
 
 log = logging.getLogger(__name__)
 
-__all__ = ["STAGE", "list_scenes", "load_scan", "load_objects", "read_color", "read_depth", "load_room_mesh",
-           "ingest_scan", "scene_names"]
+__all__ = ["STAGE", "ingest_scan", "scene_names"]
 
 OBJECTS_KEY = "objects"
-RESERVED = {OBJECTS_KEY, "_builtin", "_items"}
-BUILTIN_SCANS = ("demo", "tiny")
-SCAN_JSON, FRAMES_NPZ, ROOM_PLY = "scan.json", "frames.npz", "room.ply"
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -65,7 +58,7 @@ def scene_names(paths: tuple[str, ...] | list[str]) -> list[str]:
     for p in paths:
         base = p[len(BUILTIN_PREFIX):] if p.startswith(BUILTIN_PREFIX) else Path(p.rstrip("/\\")).name
         base = re.sub(r"[^A-Za-z0-9_.-]", "_", base).strip(".") or "scan"
-        if base in RESERVED:
+        if base in RESERVED_SCENES:
             base += "-scan"
         name, k = base, 2
         while name in out:
@@ -77,28 +70,6 @@ def scene_names(paths: tuple[str, ...] | list[str]) -> list[str]:
 # ---------------------------------------------------------------------------------------------------
 # One scan
 # ---------------------------------------------------------------------------------------------------
-
-def _builtin_scan(name: str, run_dir: Path) -> Path:
-    if name not in BUILTIN_SCANS:
-        raise UserError(f"scan.paths: unknown built-in scan 'builtin:{name}'; valid: "
-                        f"{', '.join('builtin:' + n for n in BUILTIN_SCANS)}")
-    try:
-        from pipeline.synthscan import builtin_scan
-    except ImportError as e:
-        raise UserError(f"scan.paths: 'builtin:{name}' needs the synthetic scan generator (pipeline.synthscan), "
-                        f"which cannot be imported ({e}); name a real scan folder instead") from None
-    final = run_dir / "ingest" / "_builtin" / name
-    if final.is_dir():
-        return Path(builtin_scan(name, final))  # complete: it only ever appears by the rename below
-    # Generate beside it and rename into place, so a run killed mid-generation never leaves a partial
-    # scan folder for the resumed run to trip over; remove what such a run left.
-    for stale in final.parent.glob(f"{name}.tmp-*"):
-        shutil.rmtree(stale, ignore_errors=True)
-    tmp = final.with_name(f"{name}.tmp-{os.getpid()}")
-    builtin_scan(name, tmp)
-    os.replace(tmp, final)
-    return final
-
 
 def room_mesh_for(scan: Scan, cfg: Config) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, str]:
     """The room mesh of ``scan``: its own (or ``scan.mesh`` from the config) converted, else reconstructed.
@@ -212,91 +183,6 @@ def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -
     return scan
 
 
-def _relative(path: str, out_dir: Path) -> str:
-    """``path`` relative to the scene folder when it lies inside the run folder (so run folders can move
-    and equal runs give equal bytes), else unchanged (absolute)."""
-    if not path:
-        return path
-    run_dir = out_dir.resolve().parent.parent
-    p = Path(path).resolve()
-    if p.is_relative_to(run_dir):
-        return Path(os.path.relpath(p, out_dir.resolve())).as_posix()
-    return path
-
-
-def _absolute(path: str, out_dir: Path) -> str:
-    if not path or Path(path).is_absolute():
-        return path
-    return os.path.normpath(out_dir.resolve() / path)
-
-
-def save_scan(out_dir: str | Path, scan: Scan) -> None:
-    """Write ``scan.json`` + ``frames.npz`` (the room mesh is written separately)."""
-    out_dir = Path(out_dir)
-    atomic_save_npz(out_dir / FRAMES_NPZ, frame_ids=scan.frame_ids.astype(np.int64),
-                    K=scan.K.astype(np.float64), T_c2w=scan.T_c2w.astype(np.float64),
-                    depth_K=scan.depth_K.astype(np.float64))
-    rel = lambda p: _relative(p, out_dir)  # noqa: E731
-    doc = {"name": scan.name, "root": rel(scan.root), "format": scan.format, "width": scan.width,
-           "height": scan.height, "depth_width": scan.depth_width, "depth_height": scan.depth_height,
-           "depth_scale": scan.depth_scale, "depth_registered": scan.depth_registered,
-           "up_w": [float(x) for x in scan.up_w], "mesh_path": rel(scan.mesh_path),
-           "color_paths": [rel(p) for p in scan.color_paths], "depth_paths": [rel(p) for p in scan.depth_paths],
-           "num_frames": scan.num_frames, "meta": scan.meta,
-           "units": "metres; poses camera-to-world, OpenCV camera axes; K at colour resolution"}
-    atomic_write_json(out_dir / SCAN_JSON, doc)
-
-
-# ---------------------------------------------------------------------------------------------------
-# Loading API
-# ---------------------------------------------------------------------------------------------------
-
-def list_scenes(run_dir: str | Path) -> list[str]:
-    """Names of the scenes ingested into ``run_dir`` (sorted)."""
-    root = Path(run_dir) / "ingest"
-    if not root.is_dir():
-        return []
-    return sorted(p.parent.name for p in root.glob(f"*/{SCAN_JSON}") if p.parent.name not in RESERVED)
-
-
-def load_scan(run_dir: str | Path, scene: str) -> Scan:
-    """The :class:`Scan` that ingest wrote for ``scene``."""
-    d = Path(run_dir) / "ingest" / scene
-    if not (d / SCAN_JSON).is_file():
-        raise UserError(f"{d / SCAN_JSON} is missing: scene {scene!r} was not ingested into {run_dir}; "
-                        f"run 'scansynth ingest {run_dir}' (scenes there: {', '.join(list_scenes(run_dir)) or 'none'})")
-    doc = read_json(d / SCAN_JSON)
-    a = load_npz(d / FRAMES_NPZ)
-    ab = lambda p: _absolute(p, d)  # noqa: E731
-    return Scan(name=doc["name"], root=ab(doc["root"]), format=doc["format"], frame_ids=a["frame_ids"],
-                color_paths=tuple(ab(p) for p in doc["color_paths"]),
-                depth_paths=tuple(ab(p) for p in doc["depth_paths"]),
-                width=int(doc["width"]), height=int(doc["height"]), K=a["K"], T_c2w=a["T_c2w"],
-                depth_width=int(doc["depth_width"]), depth_height=int(doc["depth_height"]),
-                depth_K=a["depth_K"], depth_scale=float(doc["depth_scale"]),
-                depth_registered=bool(doc["depth_registered"]), up_w=np.asarray(doc["up_w"], dtype=np.float64),
-                mesh_path=ab(doc["mesh_path"]), meta=doc["meta"])
-
-
-def load_objects(run_dir: str | Path) -> list[ObjectModel]:
-    """The normalised object library that ingest wrote (sorted by id)."""
-    from pipeline.objects import load_saved_library
-
-    return load_saved_library(Path(run_dir) / "ingest" / OBJECTS_KEY)
-
-
-def load_room_mesh(scan: Scan) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """The room mesh of an ingested scan.
-
-    Returns
-    -------
-    vertices (V, 3) float64 metres world frame, faces (T, 3) int32, vertex colours (V, 3) uint8 or None.
-    """
-    if not Path(scan.mesh_path).is_file():
-        raise UserError(f"{scan.mesh_path}: room mesh is missing; re-run 'scansynth ingest'")
-    return read_room_ply(scan.mesh_path)
-
-
 # ---------------------------------------------------------------------------------------------------
 # Stage
 # ---------------------------------------------------------------------------------------------------
@@ -318,7 +204,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
         return {"objects": len(models), "ids": [m.obj_id for m in models], INPUT_PROBLEMS: problems}
     path = item.data["path"]
     if path.startswith(BUILTIN_PREFIX):
-        path = str(_builtin_scan(path[len(BUILTIN_PREFIX):], ctx.run_dir))
+        path = str(builtin_scan_dir(ctx.run_dir, path[len(BUILTIN_PREFIX):]))
     scan = ingest_scan(path, item.key, ctx.stage_dir / item.key, ctx.cfg)
     return {"scene": scan.name, "format": scan.format, "frames": scan.num_frames,
             "skipped": scan.meta.get("skipped", {}), "mesh": scan.meta["mesh"],

@@ -20,35 +20,12 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import UserError
-from pipeline.io import atomic_save_npz, atomic_write_bytes, load_npz
+from pipeline.io import atomic_save_npz, atomic_write_bytes
+from pipeline.runfolder import (OBJECT_PROXY_TPATH, ROOM_PROXY_TPATH, ROOM_TRACE_TPATH, list_scenes, load_objects,
+                                load_room_mesh, load_scan, path)
 from pipeline.runner import Item, Stage, StageContext
 
 log = logging.getLogger(__name__)
-
-
-def room_proxy_path(run_dir: str | Path, scene: str) -> Path:
-    return Path(run_dir) / "prep" / scene / "room_proxy.npz"
-
-
-def object_proxy_path(run_dir: str | Path, obj_id: int) -> Path:
-    return Path(run_dir) / "prep" / "objects" / f"obj_{obj_id:06d}.npz"
-
-
-def load_room_proxy(run_dir: str | Path, scene: str) -> dict[str, np.ndarray]:
-    """The room proxy NPZ of ``scene`` as a dict of arrays."""
-    p = room_proxy_path(run_dir, scene)
-    if not p.is_file():
-        raise UserError(f"{p}: room proxy is missing; run the 'prep' stage first")
-    return load_npz(p)
-
-
-def load_object_proxy(run_dir: str | Path, obj_id: int) -> dict[str, np.ndarray]:
-    """The object proxy NPZ of ``obj_id`` as a dict of arrays."""
-    p = object_proxy_path(run_dir, obj_id)
-    if not p.is_file():
-        raise UserError(f"{p}: object proxy is missing; run the 'prep' stage first")
-    return load_npz(p)
 
 
 def hull_proxy(vertices: np.ndarray, faces: np.ndarray, density: float) -> dict[str, np.ndarray]:
@@ -115,21 +92,17 @@ def _step_text(change: dict) -> str:
 
 
 def plan(ctx: StageContext) -> list[Item]:
-    from pipeline.ingest import list_scenes
-
     return [Item(key=f"{s}/room", data={"scene": s}) for s in list_scenes(ctx.run_dir)] + \
         [Item(key="objects", data={})]
 
 
 def run_item(ctx: StageContext, item: Item) -> dict:
-    from pipeline.ingest import load_objects, load_room_mesh, load_scan
-
     cfg = ctx.cfg.prep
     if item.key == "objects":
         out = {}
         for obj in load_objects(ctx.run_dir):
             pr = object_proxy(obj.vertices, obj.faces, cfg.density, where=f"object {obj.obj_id} ({obj.name})")
-            atomic_save_npz(object_proxy_path(ctx.run_dir, obj.obj_id), **pr)
+            atomic_save_npz(path(ctx.run_dir, OBJECT_PROXY_TPATH, obj_id=obj.obj_id), **pr)
             out[str(obj.obj_id)] = {"mass": float(pr["mass"]), "fallback_hull": int(pr["fallback_hull"]),
                                     "repair": str(pr["repair"])}
         return {"objects": out}
@@ -143,8 +116,8 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     # the surface itself: physics measures contacts exactly against it (the grid is the broad phase)
     grid["mesh_vertices"] = np.asarray(v, np.float32)
     grid["mesh_faces"] = np.asarray(f, np.int32)
-    atomic_save_npz(room_proxy_path(ctx.run_dir, scene), **grid)
-    trace = ctx.stage_dir / scene / "room_trace.ply"
+    atomic_save_npz(path(ctx.run_dir, ROOM_PROXY_TPATH, scene=scene), **grid)
+    trace = path(ctx.run_dir, ROOM_TRACE_TPATH, scene=scene)
     # meshprep writes its report (with timings) beside its output: keep both out of the run folder, so
     # the run's files are the same bytes every time, and move the mesh in atomically.
     with tempfile.TemporaryDirectory(prefix="scansynth-prep-") as tmpdir:

@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
@@ -51,60 +50,26 @@ from pipeline import annotate
 from pipeline.config import RasterConfig
 from pipeline.errors import InputError
 from pipeline.io import atomic_save_npz, atomic_write_json, load_npz, read_json
+from pipeline import runfolder
+from pipeline.camera import scaled_intrinsics
+from pipeline.runfolder import (RASTER_TPATH, REAL_DEPTH_TPATH, SCENE_DEPTH_TPATH, FrameKey, frames_to_render,
+                                list_scenes, load_objects, load_placement, load_room_mesh, load_scan,
+                                simulated_drops)
 from pipeline.runner import Item, Stage, StageContext
+from pipeline.scanformats.common import read_depth
 from pipeline.tolerances import BOP_VISIB_DELTA_M, POSE_ORTHONORMAL_TOL
 from pipeline.types import ObjectModel, Placement, Scan
 
 log = logging.getLogger(__name__)
 
-SCENE_DEPTH_DIR = "scene_depth"
-REAL_DEPTH_DIR = "real_depth"
 # Objects are rendered in windows of at most TILE x TILE pixels (one fixed-size GL context): reading
 # back and linearising a whole frame per object would cost more than drawing most objects.
 TILE = 256
 
 
 # ---------------------------------------------------------------------------------------------------
-# Paths
-# ---------------------------------------------------------------------------------------------------
-
-def frame_stem(run_dir: str | Path, scene: str, drop: int, frame: int) -> Path:
-    """``RUN/raster/<scene>/drop<NNNN>/f<frame:06d>`` (add ``.npz`` / ``.json``)."""
-    return Path(run_dir) / "raster" / scene / f"drop{drop:04d}" / f"f{frame:06d}"
-
-
-def real_depth_path(run_dir: str | Path, scene: str, frame: int) -> Path:
-    """Cache of a frame's decoded sensor depth (metres, colour resolution), shared by every drop."""
-    return Path(run_dir) / "raster" / scene / REAL_DEPTH_DIR / f"f{frame:06d}.npz"
-
-
-def scene_depth_path(run_dir: str | Path, scene: str, frame: int) -> Path:
-    """Cache file of the room's depth at a frame."""
-    return Path(run_dir) / "raster" / scene / SCENE_DEPTH_DIR / f"f{frame:06d}.npz"
-
-
-# ---------------------------------------------------------------------------------------------------
 # Camera
 # ---------------------------------------------------------------------------------------------------
-
-def scaled_camera(K: np.ndarray, width: int, height: int, scale: float) -> tuple[np.ndarray, int, int]:
-    """Intrinsics and size of the render at ``scale`` times the image resolution.
-
-    Pixel centres stay consistent: a point at OpenCV pixel ``u`` maps to ``(u + 0.5) * s - 0.5``.
-
-    Returns
-    -------
-    K : (3, 3) float64, width : int, height : int
-    """
-    w, h = int(round(width * scale)), int(round(height * scale))
-    sx, sy = w / width, h / height
-    Ks = np.array(K, dtype=np.float64)
-    Ks[0, 0] *= sx
-    Ks[1, 1] *= sy
-    Ks[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
-    Ks[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
-    return Ks, w, h
-
 
 def resize_nearest(image: np.ndarray, width: int, height: int) -> np.ndarray:
     """Nearest-neighbour resize (depth must not be interpolated across edges)."""
@@ -309,27 +274,6 @@ def save_frame(stem: str | Path, result: FrameResult, doc: dict) -> None:
     atomic_write_json(stem.with_suffix(".json"), doc)
 
 
-def load_frame(stem: str | Path) -> tuple[dict, dict | None]:
-    """``(annotation doc, arrays)`` of a saved frame; arrays is None for a rejected frame.
-
-    The arrays dict has ``depth`` (H, W) float32, ``labels`` (H, W) uint16, ``amodal`` and ``visib``
-    (N, H, W) bool (unpacked) and ``written_depth`` (H, W) float32 metres (the dataset's depth).
-    """
-    stem = Path(stem)
-    doc = read_json(stem.with_suffix(".json"))
-    if doc["status"] != "ok":
-        return doc, None
-    a = load_npz(stem.with_suffix(".npz"))
-    missing = sorted({"visib", "written_depth"} - set(a))
-    if missing:
-        raise InputError(f"{stem}.npz has no {' or '.join(missing)}: it was written by an older scansynth "
-                         f"(before visibility followed bop_toolkit's rule); delete {stem.parent.parent.parent} "
-                         f"and run again from the raster stage")
-    a["amodal"] = annotate.unpack_masks(a["amodal"], int(doc["width"]))
-    a["visib"] = annotate.unpack_masks(a["visib"], int(doc["width"]))
-    return doc, a
-
-
 # ---------------------------------------------------------------------------------------------------
 # Poses files
 # ---------------------------------------------------------------------------------------------------
@@ -444,39 +388,16 @@ def save_poses_file(path: str | Path, placements: Sequence[Placement],
 # Stage
 # ---------------------------------------------------------------------------------------------------
 
-_DROP_RE = re.compile(r"^drop(\d+)\.json$")
-
-
-def _simulated_drops(run_dir: Path, scene: str) -> list[int]:
-    d = run_dir / "simulate" / scene
-    if not d.is_dir():
-        return []
-    return sorted(int(m.group(1)) for p in d.iterdir() if (m := _DROP_RE.match(p.name)))
-
-
-def _scene_frames(run_dir: Path, scan: Scan) -> list[int]:
-    sel = run_dir / "select" / scan.name / "selection.json"
-    if sel.is_file():
-        from pipeline.select import load_selection
-
-        return [int(f) for f in load_selection(run_dir, scan.name)]
-    return list(range(scan.num_frames))
-
-
 def _placements(ctx: StageContext, scene: str, obj_ids: Sequence[int] | None = None
                 ) -> list[tuple[Placement, tuple[int, ...] | None]]:
     """Placements to render for ``scene``: from the poses file when configured, else the simulate stage."""
     if ctx.cfg.raster.poses:
-        from pipeline.ingest import list_scenes, load_objects
-
         if obj_ids is None:
             obj_ids = [o.obj_id for o in load_objects(ctx.run_dir)]
         entries = load_poses_file(ctx.cfg.raster.poses, obj_ids=obj_ids, scenes=list_scenes(ctx.run_dir))
         return [(e.placement, e.frames) for e in entries if e.placement.scene == scene]
-    from pipeline.simulate import load_placement
-
     out = []
-    for drop in _simulated_drops(ctx.run_dir, scene):
+    for drop in simulated_drops(ctx.run_dir, scene):
         p = load_placement(ctx.run_dir, scene, drop)
         if p.verdict != "accepted":
             log.info("raster: %s drop %d skipped (simulate verdict %s)", scene, drop, p.verdict)
@@ -486,8 +407,6 @@ def _placements(ctx: StageContext, scene: str, obj_ids: Sequence[int] | None = N
 
 
 def plan(ctx: StageContext) -> list[Item]:
-    from pipeline.ingest import list_scenes, load_scan
-
     items = []
     for scene in list_scenes(ctx.run_dir):
         scan = load_scan(ctx.run_dir, scene)
@@ -496,7 +415,7 @@ def plan(ctx: StageContext) -> list[Item]:
             log.warning("raster: scene %s has no accepted drop to render (run simulate, or set raster.poses)",
                         scene)
             continue
-        default_frames = _scene_frames(ctx.run_dir, scan)
+        default_frames = frames_to_render(ctx.run_dir, scan)
         for p, frames in placements:
             fr = list(frames) if frames is not None else default_frames
             bad = [f for f in fr if f >= scan.num_frames]
@@ -504,7 +423,7 @@ def plan(ctx: StageContext) -> list[Item]:
                 raise InputError(f"{ctx.cfg.raster.poses}: scene {scene!r} drop {p.drop}: frames {bad[:5]} "
                                  f"are beyond the scan's {scan.num_frames} frames")
             for f in fr:
-                items.append(Item(key=f"{scene}/drop{p.drop:04d}/f{f:06d}",
+                items.append(Item(key=str(FrameKey(scene, int(p.drop), int(f))),
                                   data={"scene": scene, "drop": int(p.drop), "frame": int(f)}))
     return items
 
@@ -517,15 +436,13 @@ def _room_key(scan: Scan) -> str:
 def cached_scene_depth(run_dir: Path, scan: Scan, frame: int, K: np.ndarray, width: int, height: int,
                        rasterizer) -> np.ndarray:
     """The room's depth at ``frame``: read from the cache, or rendered and cached (atomically)."""
-    path = scene_depth_path(run_dir, scan.name, frame)
+    path = runfolder.path(run_dir, SCENE_DEPTH_TPATH, scene=scan.name, frame=frame)
     if path.is_file():
         d = load_npz(path)["depth"]
         if d.shape == (height, width):
             return d
     key = _room_key(scan)
     if not rasterizer.has_mesh(key):
-        from pipeline.ingest import load_room_mesh
-
         v, f, _ = load_room_mesh(scan)
         rasterizer.add_mesh(key, v, f)
     d = rasterizer.render_depth(K, scan.T_c2w[frame], width, height, [(key, np.eye(4))])
@@ -541,20 +458,17 @@ def cached_real_depth(run_dir: Path, scan: Scan, frame: int, width: int, height:
     """
     if not scan.depth_paths[frame]:
         return None
-    path = real_depth_path(run_dir, scan.name, frame)
+    path = runfolder.path(run_dir, REAL_DEPTH_TPATH, scene=scan.name, frame=frame)
     if path.is_file():
         d = load_npz(path)["depth"]
         if d.shape == (height, width):
             return d
-    from pipeline.ingest import read_depth
-
     d = np.ascontiguousarray(resize_nearest(read_depth(scan, frame), width, height), dtype=np.float32)
     atomic_save_npz(path, depth=d)
     return d
 
 
 def run_item(ctx: StageContext, item: Item) -> dict:
-    from pipeline.ingest import load_objects, load_scan
     from pipeline.render_gl import shared_rasterizer
 
     cfg = ctx.cfg.raster
@@ -570,7 +484,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
         raise InputError(f"scene {scene!r} drop {drop}: object ids {missing} are not in the ingested library")
     rasterizer = shared_rasterizer()
     keys = ensure_objects(rasterizer, [objects[i] for i in sorted(set(int(i) for i in placement.obj_ids))])
-    K, w, h = scaled_camera(scan.K[frame], scan.width, scan.height, cfg.image_scale)
+    K, w, h = scaled_intrinsics(scan.K[frame], scan.width, scan.height, cfg.image_scale)
 
     res = render_frame(rasterizer, K=K, T_c2w=scan.T_c2w[frame], width=w, height=h, placement=placement,
                        mesh_keys=keys,
@@ -579,7 +493,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
                        depth_scale=ctx.cfg.export.depth_scale, fill_room=ctx.cfg.composite.depth_fill == "room")
     doc = frame_doc(res, scene=scene, drop=drop, frame=frame, frame_id=int(scan.frame_ids[frame]),
                     fusion=cfg.real_depth_fusion)
-    save_frame(frame_stem(ctx.run_dir, scene, drop, frame), res, doc)
+    save_frame(FrameKey(scene, drop, frame).path(ctx.run_dir, RASTER_TPATH), res, doc)
     return {"status": res.status, "check": res.check, "reason": res.reason,
             "instances": len(res.instances), "visible": sum(i["visible"] for i in res.instances)}
 

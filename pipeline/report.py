@@ -17,6 +17,8 @@ import json
 import logging
 from pathlib import Path
 
+from pipeline.runfolder import DATASET_DIR
+
 log = logging.getLogger(__name__)
 
 
@@ -71,7 +73,7 @@ def _mapping(v) -> dict:
 
 def images(run_dir: str | Path) -> int:
     """RGB images in the finished dataset (``RUN/export/dataset/<split>/<scene>/rgb/``)."""
-    root = Path(run_dir) / "export" / "dataset"
+    root = Path(run_dir) / DATASET_DIR
     if not root.is_dir():
         return 0
     return sum(1 for p in root.glob("*/*/rgb/*") if p.suffix in (".jpg", ".png"))

@@ -26,6 +26,7 @@ import numpy as np
 
 from pipeline.errors import UserError
 from pipeline.io import atomic_write_bytes, encode_image
+from pipeline.runfolder import DATASET_DIR
 
 log = logging.getLogger(__name__)
 
@@ -127,7 +128,7 @@ def _samples(run: Path, max_samples: int) -> tuple[str, list[str]]:
     from pipeline.preview import annotated_samples
 
     notes: list[str] = []
-    dataset = run / "export" / "dataset"
+    dataset = run / DATASET_DIR
     assets = run / ASSETS_DIR
     written: set[str] = set()
     try:

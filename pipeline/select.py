@@ -39,13 +39,13 @@ import numpy as np
 
 from pipeline import blur
 from pipeline.config import SelectConfig
-from pipeline.errors import InputError
-from pipeline.io import atomic_write_bytes, atomic_write_image, atomic_write_json, read_json
+from pipeline.io import atomic_write_bytes, atomic_write_image, atomic_write_json
+from pipeline.runfolder import SELECTION_TPATH, list_scenes, load_scan
 from pipeline.runner import Item, Stage, StageContext
+from pipeline.scanformats.common import read_color
 
 log = logging.getLogger(__name__)
 
-SELECTION_FILE = "selection.json"
 SCORES_FILE = "scores.csv"
 SHEET_FILE = "contact_sheet.png"
 
@@ -288,26 +288,7 @@ def save_selection(out_dir: str | Path, doc: dict, thumbs: list[np.ndarray] | No
     if thumbs is not None:
         atomic_write_image(out / SHEET_FILE, contact_sheet(thumbs, doc))
     atomic_write_bytes(out / SCORES_FILE, scores_csv(doc).encode("utf-8"))
-    return atomic_write_json(out / SELECTION_FILE, doc)  # last: its presence means the item is whole
-
-
-def load_selection(run_dir: str | Path, scene: str) -> np.ndarray:
-    """Kept frame indices (into the scene's Scan arrays) written by the select stage.
-
-    Returns
-    -------
-    (K,) int64, ascending.
-
-    Raises
-    ------
-    InputError
-        When the stage has not run for ``scene``.
-    """
-    path = Path(run_dir) / "select" / scene / SELECTION_FILE
-    if not path.is_file():
-        raise InputError(f"{path} does not exist: run the select stage for scene {scene!r} first "
-                         f"('scansynth select {run_dir}')")
-    return np.asarray(read_json(path)["kept"], dtype=np.int64)
+    return atomic_write_json(out / Path(SELECTION_TPATH).name, doc)  # last: its presence means the item is whole
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -315,14 +296,10 @@ def load_selection(run_dir: str | Path, scene: str) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------------
 
 def _plan(ctx: StageContext) -> list[Item]:
-    from pipeline.ingest import list_scenes
-
     return [Item(key=scene, data={"scene": scene}) for scene in list_scenes(ctx.run_dir)]
 
 
 def _run_item(ctx: StageContext, item: Item) -> dict:
-    from pipeline.ingest import load_scan, read_color
-
     scene = item.data["scene"]
     cfg = ctx.cfg.select
     scan = load_scan(ctx.run_dir, scene)

@@ -16,7 +16,9 @@ import numpy as np
 
 from pipeline.config import SimulateConfig
 from pipeline.errors import InputError, UserError
-from pipeline.io import atomic_write_json, read_json
+from pipeline.io import atomic_write_json
+from pipeline.runfolder import (DROP_TPATH, PLACEMENT_TPATH, ROOM_PROXY_TPATH, SELECTION_TPATH, list_scenes,
+                                load_object_proxy, load_objects, load_scan, load_selection, path, save_placement)
 from pipeline.runner import Item, Stage, StageContext
 from pipeline.types import Placement
 
@@ -26,50 +28,6 @@ log = logging.getLogger(__name__)
 FOCUS_MIN_HALF_WIDTH = 0.25   # m, smallest half-width of a view-focused spawn square
 FOCUS_SPREAD = 1.2            # half-width = this x sqrt(objects) x median bounding radius (room to fall apart)
 FOCUS_TRIES = 3               # focus cells tried before falling back to the whole-room spawn box
-
-
-def placement_path(run_dir: str | Path, scene: str, drop: int) -> Path:
-    return Path(run_dir) / "simulate" / scene / f"drop{drop:04d}.json"
-
-
-def placement_to_dict(p: Placement) -> dict:
-    """JSON-able dict of a placement (floats written with round-trip precision)."""
-    return {"scene": p.scene, "drop": int(p.drop), "obj_ids": np.asarray(p.obj_ids).astype(int).tolist(),
-            "R_m2w": np.asarray(p.R_m2w, float).tolist(), "t_m2w": np.asarray(p.t_m2w, float).tolist(),
-            "at_rest": np.asarray(p.at_rest, bool).tolist(), "max_penetration": float(p.max_penetration),
-            "verdict": p.verdict}
-
-
-def save_placement(path: str | Path, placement: Placement, *, extra: dict | None = None) -> Path:
-    """Write a placement as JSON, atomically (``extra`` adds keys, e.g. simulated seconds)."""
-    doc = placement_to_dict(placement)
-    if extra:
-        doc.update({f"sim_{k}": v for k, v in extra.items()})
-    return atomic_write_json(path, doc)
-
-
-def read_placement(path: str | Path) -> Placement:
-    """Read a placement JSON written by :func:`save_placement`."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"{path}: placement is missing; run the 'simulate' stage first")
-    d = read_json(path)
-    try:
-        n = len(d["obj_ids"])
-        p = Placement(scene=str(d["scene"]), drop=int(d["drop"]),
-                      obj_ids=np.asarray(d["obj_ids"], np.int32).reshape(n),
-                      R_m2w=np.asarray(d["R_m2w"], float).reshape(n, 3, 3),
-                      t_m2w=np.asarray(d["t_m2w"], float).reshape(n, 3),
-                      at_rest=np.asarray(d["at_rest"], bool).reshape(n),
-                      max_penetration=float(d["max_penetration"]), verdict=str(d["verdict"]))
-    except (KeyError, ValueError, TypeError) as e:
-        raise InputError(f"{path}: not a placement file ({e}); re-run the 'simulate' stage") from None
-    return p
-
-
-def load_placement(run_dir: str | Path, scene: str, drop: int) -> Placement:
-    """The placement of drop ``drop`` in ``scene`` (see :func:`save_placement`)."""
-    return read_placement(placement_path(run_dir, scene, drop))
 
 
 def body_of(proxy: dict[str, np.ndarray], friction: float):
@@ -150,9 +108,7 @@ def simulate(cfg: SimulateConfig, *, scene: str, drop: int, room: dict, up: np.n
 
 
 def plan(ctx: StageContext) -> list[Item]:
-    from pipeline.ingest import list_scenes
-
-    return [Item(key=f"{s}/drop{d:04d}", data={"scene": s, "drop": d})
+    return [Item(key=DROP_TPATH.format(scene=s, drop=d), data={"scene": s, "drop": d})
             for s in list_scenes(ctx.run_dir) for d in range(ctx.cfg.simulate.drops)]
 
 
@@ -185,32 +141,26 @@ def _cached_room(stamp: tuple[str, int, int], up: tuple[float, float, float]):
 def _cached_view_map(run_dir: str, scene: str, selection: tuple[str, int, int],
                      room_stamp: tuple[str, int, int], up: tuple[float, float, float]):
     """:func:`_view_map` once per worker process, scene and selection file."""
-    from pipeline.ingest import load_scan
-
     room, info = _cached_room(room_stamp, up)
     return _view_map(Path(run_dir), load_scan(run_dir, scene), room, info.R_w2g)
 
 
 def run_item(ctx: StageContext, item: Item) -> dict:
-    from pipeline.ingest import load_objects, load_scan
-    from pipeline.prep import load_object_proxy, room_proxy_path
-    from pipeline.select import SELECTION_FILE
-
     scene, drop = item.data["scene"], int(item.data["drop"])
     scan = load_scan(ctx.run_dir, scene)
-    path = room_proxy_path(ctx.run_dir, scene)
-    if not path.is_file():
-        raise UserError(f"{path}: room proxy is missing; run the 'prep' stage first")
+    proxy = path(ctx.run_dir, ROOM_PROXY_TPATH, scene=scene)
+    if not proxy.is_file():
+        raise UserError(f"{proxy}: room proxy is missing; run the 'prep' stage first")
     up = tuple(float(v) for v in np.asarray(scan.up_w, float))
-    room, info = _cached_room(_stamp(path), up)
-    selection = _stamp(Path(ctx.run_dir) / "select" / scene / SELECTION_FILE)
-    view = _cached_view_map(str(ctx.run_dir), scene, selection, _stamp(path), up)
+    room, info = _cached_room(_stamp(proxy), up)
+    selection = _stamp(path(ctx.run_dir, SELECTION_TPATH, scene=scene))
+    view = _cached_view_map(str(ctx.run_dir), scene, selection, _stamp(proxy), up)
     proxies = {o.obj_id: load_object_proxy(ctx.run_dir, o.obj_id) for o in load_objects(ctx.run_dir)}
     if not proxies:
         raise InputError("the object library is empty; give objects.paths in the config")
     pl, facts = simulate(ctx.cfg.simulate, scene=scene, drop=drop, room=room, up=scan.up_w,
                          proxies=proxies, rng=ctx.rng(item), view=view, info=info)
-    save_placement(placement_path(ctx.run_dir, scene, drop), pl, extra=facts)
+    save_placement(path(ctx.run_dir, PLACEMENT_TPATH, scene=scene, drop=drop), pl, extra=facts)
     if pl.verdict != "accepted":
         log.info("%s: %s", item.key, pl.verdict)
     return {"verdict": pl.verdict, "max_penetration": pl.max_penetration,
@@ -222,7 +172,6 @@ def _view_map(run_dir: Path, scan, room: dict, R_w2g: np.ndarray | None = None):
     :func:`pipeline.physics.drop.room_frame` (computed when None; None when nothing was selected or
     seen)."""
     from pipeline.physics.drop import room_frame
-    from pipeline.select import load_selection
     from pipeline.view_spawn import view_map
 
     try:

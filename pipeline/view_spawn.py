@@ -132,7 +132,7 @@ def view_map(scan, frames, R_w2g: np.ndarray, *, cell: float = 0.2, stride: int 
         Grid points a frame needs in a cell for the cell to count as seen.
     """
     from pipeline.errors import UserError
-    from pipeline.ingest import read_depth
+    from pipeline.scanformats.common import read_depth
 
     R_w2g = np.asarray(R_w2g, float)
     up = R_w2g[2]

@@ -31,23 +31,13 @@ import numpy as np
 
 from pipeline.config import TraceConfig
 from pipeline.errors import InputError
-from pipeline.io import atomic_save_npz, load_npz, read_json
+from pipeline.io import atomic_save_npz, load_npz
+from pipeline.runfolder import (DROP_TPATH, FRAMES_TPATH, SCAN_TPATH, TRACE_TPATH, FrameKey, RasterFrame,
+                                load_objects, load_raster_frame, load_scan, path, raster_frames, room_trace_mesh)
 from pipeline.runner import Item, Stage, StageContext
+from pipeline.scanformats.common import read_color
 
 log = logging.getLogger(__name__)
-
-
-def output_path(run_dir: str | Path, scene: str, drop: int, frame: int) -> Path:
-    """``RUN/trace/<scene>/drop<NNNN>/f<frame:06d>.npz``."""
-    return Path(run_dir) / "trace" / scene / f"drop{drop:04d}" / f"f{frame:06d}.npz"
-
-
-def load_trace(run_dir: str | Path, scene: str, drop: int, frame: int) -> dict[str, np.ndarray]:
-    """The arrays the trace stage wrote for a frame (see the module docstring)."""
-    p = output_path(run_dir, scene, drop, frame)
-    if not p.is_file():
-        raise InputError(f"{p} is missing: run 'scansynth trace' first")
-    return load_npz(p)
 
 
 def settings_from_config(cfg: TraceConfig):
@@ -59,57 +49,39 @@ def settings_from_config(cfg: TraceConfig):
                           ao_distance=cfg.ao_distance)
 
 
-def room_mesh_path(run_dir: Path, scan, which: str = "prep") -> str:
-    """The room mesh to trace: prep's ``room_trace.ply`` when present (``which = "prep"``), else the
-    ingest mesh."""
-    p = run_dir / "prep" / scan.name / "room_trace.ply"
-    return str(p) if which == "prep" and p.is_file() else scan.mesh_path
-
-
 def plan(ctx: StageContext) -> list[Item]:
-    root = ctx.run_dir / "raster"
-    if not root.is_dir():
-        log.warning("trace: %s does not exist; run the raster stage first", root)
-        return []
-    drops: dict[tuple[str, str], list[int]] = {}
-    for npz in sorted(root.glob("*/drop*/f*.npz")):
-        scene, drop_dir, stem = npz.parent.parent.name, npz.parent.name, npz.stem
-        try:
-            int(drop_dir[4:])
-            frame = int(stem[1:])
-        except ValueError:
-            continue
-        drops.setdefault((scene, drop_dir), []).append(frame)
+    frames = raster_frames(ctx.run_dir)
+    if not frames:
+        log.warning("trace: no raster frame in %s; run the raster stage first", ctx.run_dir / "raster")
     # Chunks of a drop's frames: the scene is built once per item, and items small enough to spread over the
     # workers (one item per drop left one core idle at the end of a run). Keys depend only on the frames.
+    drops: dict[tuple[str, int], list[int]] = {}
+    for k in frames:
+        drops.setdefault((k.scene, k.drop), []).append(k.frame)
     n = ctx.cfg.trace.frames_per_item
     items = []
-    for (scene, drop_dir), frames in sorted(drops.items()):
-        for i in range(0, len(frames), n):
-            chunk = frames[i:i + n]
-            items.append(Item(key=f"{scene}/{drop_dir}/f{chunk[0]:06d}-f{chunk[-1]:06d}",
-                              data={"scene": scene, "drop": int(drop_dir[4:]), "frames": chunk}))
+    for (scene, drop), fr in sorted(drops.items()):
+        for i in range(0, len(fr), n):
+            chunk = fr[i:i + n]
+            items.append(Item(key=f"{DROP_TPATH.format(scene=scene, drop=drop)}/f{chunk[0]:06d}-f{chunk[-1]:06d}",
+                              data={"scene": scene, "drop": drop, "frames": chunk}))
     return items
 
 
-def _instances(doc: dict, stem: Path, library: dict) -> list:
+def _instances(rf: RasterFrame, library: dict) -> list:
     from pipeline.trace.scene import instance_from_model
 
-    T_c2w = np.asarray(doc["T_c2w"], np.float64)
     out = []
-    for inst in doc["instances"]:
-        oid = int(inst["obj_id"])
-        if oid not in library:
-            raise InputError(f"{stem}.json: object id {oid} is not in the ingested library; re-run ingest "
-                             f"with the same objects.paths as raster")
-        R_m2w = T_c2w[:3, :3] @ np.asarray(inst["R_m2c"], np.float64)
-        t_m2w = T_c2w[:3, :3] @ np.asarray(inst["t_m2c"], np.float64) + T_c2w[:3, 3]
-        out.append(instance_from_model(library[oid], R_m2w, t_m2w))
+    for inst in rf.instances:
+        if inst.obj_id not in library:
+            raise InputError(f"{rf.stem}.json: object id {inst.obj_id} is not in the ingested library; re-run "
+                             f"ingest with the same objects.paths as raster")
+        out.append(instance_from_model(library[inst.obj_id], inst.R_m2w, inst.t_m2w))
     return out
 
 
-def trace_frame(ctx: StageContext, scene, scene_name: str, drop: int, frame: int, doc: dict,
-                labels: np.ndarray, *, room_isect=None, obj_isect=None, exposure: float = 1.0) -> dict:
+def trace_frame(ctx: StageContext, scene, rf: RasterFrame, labels: np.ndarray, *, room_isect=None,
+                obj_isect=None, exposure: float = 1.0) -> dict:
     """Trace one frame with a prebuilt scene and write its NPZ; returns the frame's summary.
 
     ``exposure``: the photo's exposure relative to the room mesh colours
@@ -117,16 +89,15 @@ def trace_frame(ctx: StageContext, scene, scene_name: str, drop: int, frame: int
     """
     from pipeline.seeding import item_rng
     from pipeline.trace.denoise import denoise, denoise_ao
-    from pipeline.trace.pbr import Camera, render, trace_mask
+    from pipeline.trace.pbr import render, trace_mask
     from pipeline.trace.shadow import shadow_ratio
 
     cfg = ctx.cfg.trace
-    cam = Camera(K=np.asarray(doc["K"], np.float64), T_c2w=np.asarray(doc["T_c2w"], np.float64),
-                 width=int(doc["width"]), height=int(doc["height"]))
-    if labels.shape != (cam.height, cam.width):
-        raise InputError(f"raster frame {scene_name}/drop{drop:04d}/f{frame:06d}: labels {labels.shape} do not "
-                         f"match the frame size {(cam.height, cam.width)} in its JSON; re-run raster")
-    rng = item_rng(ctx.cfg.run.seed, ctx.stage, f"{scene_name}/drop{drop:04d}/f{frame:06d}")
+    cam = rf.camera
+    if labels.shape != cam.shape:
+        raise InputError(f"raster frame {rf.key}: labels {labels.shape} do not match the frame size {cam.shape} "
+                         f"in its JSON; re-run raster")
+    rng = item_rng(ctx.cfg.run.seed, ctx.stage, str(rf.key))
     mask = trace_mask(labels, cfg.edge_band)
     fb = render(scene, cam, mask, settings_from_config(cfg), rng)
     pbr, ao = fb.pbr, fb.ao
@@ -137,7 +108,7 @@ def trace_frame(ctx: StageContext, scene, scene_name: str, drop: int, frame: int
                        stride=cfg.shadow_stride, smooth=cfg.shadow_smooth, room_isect=room_isect,
                        obj_isect=obj_isect)
           if cfg.shadow_samples > 0 else np.ones(labels.shape, np.float32))
-    atomic_save_npz(output_path(ctx.run_dir, scene_name, drop, frame), pbr=pbr.astype(np.float32),
+    atomic_save_npz(rf.key.path(ctx.run_dir, TRACE_TPATH), pbr=pbr.astype(np.float32),
                     ao=ao, coverage=fb.coverage, shadow_ratio=sr, albedo=fb.albedo, normal=fb.normal,
                     spp=np.minimum(fb.spp, 65535).astype(np.uint16), exposure=np.float32(exposure))
     traced = int(mask.sum())
@@ -159,11 +130,10 @@ def _room(run_dir: str, scene_name: str, cfg: TraceConfig, seed: int, stamps: tu
     ~0.7 CPU s per item on 7-Scenes); ``stamps`` (path, mtime, size of scan.json and the room mesh)
     make a changed file a new entry.
     """
-    from pipeline.ingest import load_scan
     from pipeline.scanformats.mesh import read_room_ply
 
     scan = load_scan(run_dir, scene_name)
-    rv, rf, rc = read_room_ply(room_mesh_path(Path(run_dir), scan, cfg.room_mesh))
+    rv, rf, rc = read_room_ply(room_trace_mesh(run_dir, scan, cfg.room_mesh))
     light_v = env_map = None
     if cfg.lighting == "scan" and cfg.photo_frames > 0:   # per scan, not per item: same result in every chunk
         from pipeline.trace.photolights import scan_lighting
@@ -176,18 +146,16 @@ def _room(run_dir: str, scene_name: str, cfg: TraceConfig, seed: int, stamps: tu
 
 
 def run_item(ctx: StageContext, item: Item) -> dict:
-    from pipeline.ingest import load_objects, load_scan
     from pipeline.trace.scene import build_scene
     from pipeline.trace.shadow import split_intersectors
 
     cfg = ctx.cfg.trace
     scene_name, drop = item.data["scene"], int(item.data["drop"])
     frames = [int(f) for f in item.data["frames"]]
-    raster_dir = ctx.run_dir / "raster" / scene_name / f"drop{drop:04d}"
     scan = load_scan(ctx.run_dir, scene_name)
-    stamps = tuple(_stamp(p) for p in (ctx.run_dir / "ingest" / scene_name / "scan.json",
-                                       ctx.run_dir / "ingest" / scene_name / "frames.npz",
-                                       Path(room_mesh_path(ctx.run_dir, scan, cfg.room_mesh))) if p.is_file())
+    stamps = tuple(_stamp(p) for p in (path(ctx.run_dir, SCAN_TPATH, scene=scene_name),
+                                       path(ctx.run_dir, FRAMES_TPATH, scene=scene_name),
+                                       Path(room_trace_mesh(ctx.run_dir, scan, cfg.room_mesh))) if p.is_file())
     scan, rv, rf, rc, light_v, env_map = _room(str(ctx.run_dir), scene_name, cfg, ctx.cfg.run.seed, stamps)
     library = {o.obj_id: o for o in load_objects(ctx.run_dir)}
     env = None if cfg.env_radiance < 0 else np.full(3, cfg.env_radiance, np.float32)
@@ -195,11 +163,10 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     split = (None, None)
     out = {}
     for frame in frames:
-        stem = raster_dir / f"f{frame:06d}"
-        doc = read_json(stem.with_suffix(".json"))
-        labels = load_npz(stem.with_suffix(".npz"))["labels"]
+        raster = load_raster_frame(ctx.run_dir, FrameKey(scene_name, drop, frame))
+        labels = load_npz(raster.stem.with_suffix(".npz"))["labels"]
         if scene is None:  # one placement per drop: every frame's instances have the same world poses
-            scene = build_scene(rv, rf, rc, _instances(doc, stem, library), lighting=cfg.lighting,
+            scene = build_scene(rv, rf, rc, _instances(raster, library), lighting=cfg.lighting,
                                 radiance_scale=cfg.radiance_scale, light_threshold=cfg.light_threshold,
                                 light_gain=cfg.light_gain, env_radiance=env,
                                 published_power=cfg.published_power, up=scan.up_w,
@@ -208,15 +175,12 @@ def run_item(ctx: StageContext, item: Item) -> dict:
                 split = split_intersectors(scene)
         exposure = 1.0
         if cfg.lighting == "scan" and frame < scan.num_frames and scan.color_paths[frame]:
-            from pipeline.ingest import read_color
-            from pipeline.trace.pbr import Camera
             from pipeline.trace.photolights import frame_exposure
 
-            exposure = frame_exposure(scene, Camera(K=scan.K[frame], T_c2w=scan.T_c2w[frame], width=scan.width,
-                                                    height=scan.height), read_color(scan, frame),
+            exposure = frame_exposure(scene, scan.camera(frame), read_color(scan, frame),
                                       radiance_scale=cfg.radiance_scale, threshold=cfg.light_threshold)
-        out[f"f{frame:06d}"] = trace_frame(ctx, scene, scene_name, drop, frame, doc, labels,
-                                           room_isect=split[0], obj_isect=split[1], exposure=exposure)
+        out[f"f{frame:06d}"] = trace_frame(ctx, scene, raster, labels, room_isect=split[0], obj_isect=split[1],
+                                           exposure=exposure)
     return {"frames": out}
 
 

@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.geometry import look_at
+from pipeline.runfolder import RASTER_TPATH, read_raster_frame
 from pipeline.types import ObjectModel, Placement
+
+
+def load_frame(stem) -> tuple[dict, dict | None]:
+    """``(JSON document, arrays or None for a rejected frame)`` of a saved raster frame."""
+    rf = read_raster_frame(stem)
+    return rf.doc, (rf.arrays() if rf.status == "ok" else None)
 
 W_RUN, H_RUN = 160, 120
 
@@ -150,7 +157,7 @@ def make_run(run_dir, rasterizer, *, width: int = W_RUN, height: int = H_RUN, fr
 
     import cv2
 
-    from pipeline.ingest import save_scan
+    from pipeline.runfolder import save_scan
     from pipeline.objects import save_library
     from pipeline.raster import save_poses_file
     from pipeline.scanformats.mesh import ply_bytes
@@ -220,20 +227,21 @@ def write_composites(run_dir, skip=()) -> list:
 
     import cv2
 
-    from pipeline import export, raster
-    from pipeline.ingest import load_scan, read_color
+    from pipeline.runfolder import COMPOSITE_TPATH, load_scan, raster_frames
+    from pipeline.scanformats.common import read_color
 
     run_dir = Path(run_dir)
     out = []
-    for scene, drop, frame in export.raster_frames(run_dir):
+    for key in raster_frames(run_dir):
+        scene, drop, frame = key
         if (scene, drop, frame) in skip:
             continue
-        doc, arr = raster.load_frame(raster.frame_stem(run_dir, scene, drop, frame))
+        doc, arr = load_frame(key.path(run_dir, RASTER_TPATH))
         rgb = read_color(load_scan(run_dir, scene), frame)
         rgb = cv2.resize(rgb, (int(doc["width"]), int(doc["height"])), interpolation=cv2.INTER_AREA)
         obj = arr["labels"] > 0
         rgb[obj] = (0.3 * rgb[obj] + 0.7 * np.array([200, 40, 200])).astype(np.uint8)
-        p = export.composite_path(run_dir, scene, drop, frame)
+        p = key.path(run_dir, COMPOSITE_TPATH)
         p.parent.mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(p), np.ascontiguousarray(rgb[..., ::-1]))
         out.append(p)

@@ -13,6 +13,7 @@ import pytest
 
 from pipeline import camera_look as cl
 from pipeline.composite import composite_depth, composite_full, composite_published, unpremultiply
+from pipeline.runfolder import COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, FrameKey
 
 H, W = 60, 80
 
@@ -282,7 +283,7 @@ def test_depth_is_real_depth_with_visible_object_depth_even_when_real_depth_is_m
 def _make_run(run: Path, *, with_trace: bool = True, exposure: float | None = None) -> None:
     """Ingested scan (one frame, photo on disk, no depth), one raster frame and its trace passes."""
     from pipeline import annotate
-    from pipeline.ingest import save_scan
+    from pipeline.runfolder import save_scan
     from pipeline.io import atomic_save_npz, atomic_write_image, atomic_write_json
     from pipeline.types import Scan
 
@@ -321,8 +322,7 @@ def _ctx(run: Path, **composite):
 
 @pytest.mark.parametrize("mode", ["published", "full"])
 def test_stage_writes_where_export_reads_deterministically(tmp_path, mode):
-    from pipeline.composite import STAGE, depth_path
-    from pipeline.export import composite_path
+    from pipeline.composite import STAGE
     from pipeline.io import load_npz
 
     run = tmp_path / "run"
@@ -333,12 +333,12 @@ def test_stage_writes_where_export_reads_deterministically(tmp_path, mode):
     before = (run / "raster/room/drop0000/f000000.json").read_bytes()
     res = STAGE.run_item(ctx, items[0])
     assert res["mode"] == mode
-    png = composite_path(run, "room", 0, 0)
+    png = FrameKey("room", 0, 0).path(run, COMPOSITE_TPATH)
     import cv2
 
     img = cv2.imread(str(png), cv2.IMREAD_COLOR)
     assert img.shape == (H, W, 3)
-    d = load_npz(depth_path(run, "room", 0, 0))["depth"]
+    d = load_npz(FrameKey("room", 0, 0).path(run, COMPOSITE_DEPTH_TPATH))["depth"]
     _, _, labels, _ = _frame()
     assert d.shape == (H, W) and (d[labels > 0] == 1.5).all() and (d[labels == 0] == 0).all()
     first = png.read_bytes()
@@ -376,9 +376,9 @@ def test_stage_on_the_trace_stages_real_output(tmp_path):
     """Trace stage -> composite stage on a tiny box room with a ball: the agreed names and shapes hold."""
     import dataclasses
 
-    from pipeline.composite import STAGE, image_path
+    from pipeline.composite import STAGE
     from pipeline.config import build_config
-    from pipeline.ingest import load_scan, save_scan
+    from pipeline.runfolder import load_scan, save_scan
     from pipeline.io import atomic_write_image
     from pipeline.runner import StageContext
     from pipeline.trace.stage import STAGE as TRACE
@@ -397,7 +397,7 @@ def test_stage_on_the_trace_stages_real_output(tmp_path):
     res = STAGE.run_item(ctx, STAGE.plan(ctx)[0])
     import cv2
 
-    img = cv2.imread(str(image_path(run, "room", 0, 0)), cv2.IMREAD_COLOR)[..., ::-1]
+    img = cv2.imread(str(FrameKey("room", 0, 0).path(run, COMPOSITE_TPATH)), cv2.IMREAD_COLOR)[..., ::-1]
     labels = np.load(run / "raster/room/drop0000/f000000.npz")["labels"]
     assert img.shape == photo.shape and res["mode"] == "full"
     assert (img[labels > 0] != photo[labels > 0]).any(axis=-1).mean() > 0.9   # the ball is in the image
@@ -425,14 +425,13 @@ def test_stage_scales_the_objects_by_the_traced_exposure_in_full_mode_only(tmp_p
     import cv2
 
     from pipeline.composite import STAGE
-    from pipeline.export import composite_path
 
     def run_one(name, **kw):
         run = tmp_path / name
         _make_run(run, exposure=kw.pop("exposure", None))
         ctx = _ctx(run, blur_sigma=0.0, noise_sigma=0.0, **kw)
         res = STAGE.run_item(ctx, STAGE.plan(ctx)[0])
-        img = cv2.imread(str(composite_path(run, "room", 0, 0)), cv2.IMREAD_COLOR).astype(float)
+        img = cv2.imread(str(FrameKey("room", 0, 0).path(run, COMPOSITE_TPATH)), cv2.IMREAD_COLOR).astype(float)
         return res, img
 
     _, _, labels, _ = _frame()

@@ -16,6 +16,7 @@ import pytest
 from pipeline import export, raster
 from pipeline.config import build_config
 from pipeline.export_bop import bop_json_text, depth_png, models_info_mm, ply_bytes_mm, read_ply_mm
+from pipeline.runfolder import COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, RASTER_TPATH, FrameKey
 from pipeline.tolerances import RASTER_MASK_IOU_MIN
 from tests.pipeline import raster_scenes as S
 
@@ -39,18 +40,18 @@ def run(tmp_path_factory):
 def test_raster_stage_outputs_and_shared_scene_depth_cache(run):
     rd = run["run_dir"]
     assert len(run["raster"]) == 6 and all(r["status"] == "ok" for r in run["raster"].values())
-    cache = sorted((rd / "raster" / "room" / raster.SCENE_DEPTH_DIR).glob("*.npz"))
+    cache = sorted((rd / "raster" / "room" / "scene_depth").glob("*.npz"))
     assert [p.name for p in cache] == ["f000000.npz", "f000001.npz", "f000002.npz"]  # one per frame, not per drop
     inodes = [p.stat().st_ino for p in cache]
     # Redo drop 1 frame 2: its scene depth comes from the cache (file not rewritten).
-    stem = raster.frame_stem(rd, "room", 1, 2)
+    stem = FrameKey("room", 1, 2).path(rd, RASTER_TPATH)
     before = stem.with_suffix(".npz").read_bytes()
     stem.with_suffix(".npz").unlink()
     ctx = raster.StageContext(run_dir=rd, cfg=run["cfg"], stage="raster")
     raster.run_item(ctx, raster.Item(key="room/drop0001/f000002", data={"scene": "room", "drop": 1, "frame": 2}))
     assert [p.stat().st_ino for p in cache] == inodes
     assert stem.with_suffix(".npz").read_bytes() == before  # same bytes when redone
-    doc, arr = raster.load_frame(stem)
+    doc, arr = S.load_frame(stem)
     assert arr["labels"].dtype == np.uint16 and arr["depth"].dtype == np.float32
     assert arr["amodal"].shape == (7, S.H_RUN, S.W_RUN)
     assert doc["frame_id"] == 20 and doc["real_depth_fusion"] is True
@@ -73,7 +74,7 @@ def test_bop_layout_and_json_files(run):
     assert len(list((sd / "rgb").glob("*.png"))) == 6
     assert len(list((sd / "mask").glob("*.png"))) == 6 * 7 == len(list((sd / "mask_visib").glob("*.png")))
     # metres -> millimetres; the pose matches the raster annotation
-    doc, _ = raster.load_frame(raster.frame_stem(run["run_dir"], "room", 0, 1))
+    doc, _ = S.load_frame(FrameKey("room", 0, 1).path(run["run_dir"], RASTER_TPATH))
     g = gt["1"][3]
     assert g["obj_id"] == doc["instances"][3]["obj_id"]
     assert np.allclose(g["cam_t_m2c"], np.asarray(doc["instances"][3]["t_m2c"]) * 1000, atol=1e-3)
@@ -102,7 +103,7 @@ def test_depth_png_units(run):
     d = cv2.imread(str(sd / "depth" / "000000.png"), cv2.IMREAD_UNCHANGED)
     assert d.dtype == np.uint16
     scale = json.loads((sd / "scene_camera.json").read_text())["0"]["depth_scale"]
-    doc, arr = raster.load_frame(raster.frame_stem(run["run_dir"], "room", 0, 0))
+    doc, arr = S.load_frame(FrameKey("room", 0, 0).path(run["run_dir"], RASTER_TPATH))
     real = cv2.imread(run["scan"].depth_paths[0], cv2.IMREAD_UNCHANGED).astype(np.float64)  # mm
     mm = d.astype(np.float64) * scale
     vis = arr["labels"] > 0
@@ -328,8 +329,8 @@ def test_export_takes_rgb_and_depth_from_the_compositor(run):
     im = item.data["im_id"]
     img = np.zeros((S.H_RUN, S.W_RUN, 3), np.uint8)
     img[..., 1] = 200
-    cpath = export.composite_path(rd, "room", 1, 2)
-    dpath = export.composite_depth_path(rd, "room", 1, 2)
+    cpath = FrameKey("room", 1, 2).path(rd, COMPOSITE_TPATH)
+    dpath = FrameKey("room", 1, 2).path(rd, COMPOSITE_DEPTH_TPATH)
     cpath.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(cpath), img[..., ::-1])
     from pipeline.io import atomic_save_npz
@@ -477,7 +478,7 @@ def test_frame_without_composite_is_left_out_of_every_format(run, tmp_path, capl
     sd = root / "train_pbr" / "000000"
     assert len(json.loads((sd / "scene_gt.json").read_text())) == 6
     # drop 1, frame 2 (the last image) loses its composite: as if its composite item had failed
-    export.composite_path(rd, "room", 1, 2).unlink()
+    FrameKey("room", 1, 2).path(rd, COMPOSITE_TPATH).unlink()
     with caplog.at_level(logging.WARNING, logger="pipeline.export"):
         S.run_stage_direct(export.STAGE, rd, cfg)
     assert "LEFT OUT" in caplog.text and "room/drop0001/f000002" in caplog.text

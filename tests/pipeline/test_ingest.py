@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import ingest
+from pipeline import ingest, runfolder
 from pipeline.config import build_config
 from pipeline.errors import InputError, UserError
 from pipeline.reconstruct import drop_small_components, floor_up, fuse_tsdf, render_depth
 from pipeline.runner import StageContext
-from pipeline.scanformats.common import read_depth
+from pipeline.scanformats.common import read_color, read_depth
 from pipeline.scanformats.detect import read_scan
 from pipeline.scanformats.mesh import canonical_order, ply_bytes, read_room_ply
 from tests.pipeline.test_scanformats import (ROOM_HI, ROOM_LO, UP, room_mesh, trajectory, write_3rscan,
@@ -27,8 +27,14 @@ def box_distance(P: np.ndarray) -> np.ndarray:
 
 
 def run_stage(run_dir: Path, raw_cfg: dict) -> dict:
-    """Plan and run every ingest item directly (the stage registry is wired by the integrator)."""
+    """Plan and run every ingest item directly, after generating the built-in scans as creating the run
+    folder does."""
+    from pipeline.cli import generate_builtin_scan
+
     cfg = build_config(raw_cfg)
+    for p in cfg.scan.paths:
+        if p.startswith("builtin:"):
+            generate_builtin_scan(run_dir, p[len("builtin:"):])
     ctx = StageContext(run_dir=run_dir, cfg=cfg, stage="ingest")
     return {it.key: ingest.run_item(ctx, it) for it in ingest.plan(ctx)}
 
@@ -70,25 +76,25 @@ def test_stage_ingests_every_layout_and_loads_back(tmp_path):
     run = tmp_path / "run"
     res = run_stage(run, {"scan": {"paths": paths[:3]}, "ingest": TSDF, "objects": {"paths": ["builtin:shapes"]}})
     res.update(run_stage(run, {"scan": {"paths": [paths[3]], "mesh": str(mesh)}}))
-    assert ingest.list_scenes(run) == ["s3", "s7", "sn", "st"]
+    assert runfolder.list_scenes(run) == ["s3", "s7", "sn", "st"]
     assert res["s7"]["mesh"].startswith("TSDF") and res["s3"]["mesh"].startswith("converted")
     for name, truth in (("s7", t7), ("s3", t3), ("sn", tn), ("st", tt)):
-        s = ingest.load_scan(run, name)
+        s = runfolder.load_scan(run, name)
         np.testing.assert_allclose(s.T_c2w, truth["T"], atol=1e-6)
         np.testing.assert_allclose(s.K[0], truth["K"], atol=1e-6)
-        Vr, Fr, Cr = ingest.load_room_mesh(s)
+        Vr, Fr, Cr = runfolder.load_room_mesh(s)
         assert Vr.dtype == np.float64 and Fr.dtype == np.int32 and Cr.dtype == np.uint8
         assert len(Fr) > 0 and np.median(box_distance(Vr)) < 0.03
         np.testing.assert_allclose(s.up_w, UP, atol=0.02)
-        d = ingest.read_depth(s, 0)
-        assert d.shape == (s.height, s.width) and ingest.read_color(s, 0).shape == (s.height, s.width, 3)
-    s7 = ingest.load_scan(run, "s7")
+        d = read_depth(s, 0)
+        assert d.shape == (s.height, s.width) and read_color(s, 0).shape == (s.height, s.width, 3)
+    s7 = runfolder.load_scan(run, "s7")
     assert s7.meta["up_source"].startswith("metadata") and s7.meta["up"]["metadata_vs_floor_deg"] < 2
-    assert ingest.load_scan(run, "sn").meta["up_source"].startswith("mesh")
+    assert runfolder.load_scan(run, "sn").meta["up_source"].startswith("mesh")
     # the 3RScan texture (green) became vertex colours
-    _, _, C3 = ingest.load_room_mesh(ingest.load_scan(run, "s3"))
+    _, _, C3 = runfolder.load_room_mesh(runfolder.load_scan(run, "s3"))
     assert np.all(C3[:, 1] > 150) and np.all(C3[:, 0] < 50)
-    objs = ingest.load_objects(run)
+    objs = runfolder.load_objects(run)
     assert [m.obj_id for m in objs] == [1, 2, 3, 4, 5]
 
 
@@ -105,13 +111,13 @@ def test_ingest_is_deterministic(tmp_path):
 def test_max_frames_keeps_evenly_spaced_frames(tmp_path):
     write_7scenes(tmp_path / "scan", n=9)
     run_stage(tmp_path / "run", {"scan": {"paths": [str(tmp_path / "scan")], "max_frames": 3}, "ingest": TSDF})
-    s = ingest.load_scan(tmp_path / "run", "scan")
+    s = runfolder.load_scan(tmp_path / "run", "scan")
     assert list(s.frame_ids) == [0, 4, 8] and s.meta["frames_read"] == 9
 
 
 def test_load_scan_of_unknown_scene(tmp_path):
     with pytest.raises(UserError, match="was not ingested"):
-        ingest.load_scan(tmp_path, "nope")
+        runfolder.load_scan(tmp_path, "nope")
 
 
 def test_unknown_builtin_scan(tmp_path):
@@ -120,14 +126,11 @@ def test_unknown_builtin_scan(tmp_path):
 
 
 def test_builtin_tiny_scan(tmp_path):
-    synth = pytest.importorskip("pipeline.synthscan")
-    if not hasattr(synth, "builtin_scan"):
-        pytest.skip("pipeline.synthscan.builtin_scan not available yet (issue 4)")
     res = run_stage(tmp_path, {"scan": {"paths": ["builtin:tiny"]}})
-    s = ingest.load_scan(tmp_path, "tiny")
+    s = runfolder.load_scan(tmp_path, "tiny")
     assert res["tiny"]["frames"] == s.num_frames > 0
     assert np.all(np.isfinite(s.up_w)) and abs(np.linalg.norm(s.up_w) - 1) < 1e-9
-    assert len(ingest.load_room_mesh(s)[1]) > 0
+    assert len(runfolder.load_room_mesh(s)[1]) > 0
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -271,15 +274,15 @@ def test_real_sevenscenes_ingest_subset(shared_data, tmp_path):
     run_stage(tmp_path, {"scan": {"paths": [str(root)], "max_frames": 25},
                          "ingest": {"tsdf_voxel": 0.03, "tsdf_trunc": 0.12},
                          "objects": {"paths": ["builtin:shapes"]}})
-    s = ingest.load_scan(tmp_path, "7scenes-redkitchen")
+    s = runfolder.load_scan(tmp_path, "7scenes-redkitchen")
     assert s.num_frames == 25 and s.format == "7scenes"
     # gravity-direction.txt points down: the floor found in the mesh agrees with its negation
     assert s.meta["up"]["metadata_vs_floor_deg"] < 3.0
     assert 1.0 < s.meta["up"]["camera_height_above_floor_m"] < 2.0
-    V, F, C = ingest.load_room_mesh(s)
+    V, F, C = runfolder.load_room_mesh(s)
     errs = []
     for i in (0, 12, 24):
-        d_real = ingest.read_depth(s, i)
+        d_real = read_depth(s, i)
         d = render_depth(V, F, s.K[i], s.T_c2w[i], s.width, s.height)
         ok = (d > 0) & (d_real > 0)
         errs.append(np.abs(d - d_real)[ok])

@@ -13,8 +13,9 @@ from pipeline import annotate
 from pipeline.config import RasterConfig, build_config
 from pipeline.errors import InputError
 from pipeline.io import npz_bytes
-from pipeline.raster import (ensure_objects, frame_doc, load_frame, load_poses_file, render_frame, save_frame,
-                             save_poses_file, scaled_camera)
+from pipeline.camera import scaled_intrinsics
+from pipeline.raster import ensure_objects, frame_doc, load_poses_file, render_frame, save_frame, save_poses_file
+from pipeline.runfolder import RASTER_TPATH, FrameKey
 from pipeline.tolerances import RASTER_DEPTH_MEDIAN_M, RASTER_MASK_IOU_MIN
 from pipeline.types import Placement
 from tests.pipeline import raster_scenes as S
@@ -239,8 +240,8 @@ def test_real_depth_within_tolerance_does_not_occlude(rasterizer, scene):
     assert res.stats["visible_px"] == 0
 
 
-def test_scaled_camera_keeps_pixel_centres(rasterizer, scene):
-    K2, w2, h2 = scaled_camera(scene["K"], W, H, 0.5)
+def test_scaled_intrinsics_keep_pixel_centres(rasterizer, scene):
+    K2, w2, h2 = scaled_intrinsics(scene["K"], W, H, 0.5)
     assert (w2, h2) == (W // 2, H // 2)
     full = _render(rasterizer, scene)
     half = _render(rasterizer, scene, K=K2, w=w2, h=h2, room_depth=scene["room_depth"][::2, ::2] * 0)
@@ -262,7 +263,7 @@ def test_save_load_roundtrip_and_determinism(rasterizer, scene, tmp_path):
         npz_bytes({"d": b.depth, "l": b.labels, "m": pack(b.amodal)})
     doc = frame_doc(a, scene="room", drop=2, frame=7, frame_id=70, fusion=False)
     save_frame(tmp_path / "f000007", a, doc)
-    doc2, arr = load_frame(tmp_path / "f000007")
+    doc2, arr = S.load_frame(tmp_path / "f000007")
     assert doc2 == json.loads(json.dumps(doc))
     assert arr["depth"].dtype == np.float32 and arr["labels"].dtype == np.uint16
     assert np.array_equal(arr["labels"], a.labels) and np.array_equal(arr["amodal"], a.amodal)
@@ -353,23 +354,24 @@ def test_stage_renders_accepted_simulated_drops_on_selected_frames(tmp_path, ras
     select stage's kept frames."""
     import pipeline.raster as raster_stage
     from pipeline.io import atomic_write_json
-    from pipeline.simulate import placement_path, save_placement
+    from pipeline.runfolder import PLACEMENT_TPATH, path, save_placement
 
     run = tmp_path / "RUN"
     made = S.make_run(run, rasterizer, frames=3, drops=2)
     ok, bad = made["placements"]
-    save_placement(placement_path(run, "room", 0), ok)
-    save_placement(placement_path(run, "room", 1), dataclasses.replace(bad, verdict="rejected:left the room"))
+    save_placement(path(run, PLACEMENT_TPATH, scene="room", drop=0), ok)
+    save_placement(path(run, PLACEMENT_TPATH, scene="room", drop=1), dataclasses.replace(bad, verdict="rejected:left the room"))
     atomic_write_json(run / "select" / "room" / "selection.json", {"kept": [0, 2]})
     res = S.run_stage_direct(raster_stage.STAGE, run, build_config({}))
     assert sorted(res) == ["room/drop0000/f000000", "room/drop0000/f000002"]
-    doc, arr = load_frame(raster_stage.frame_stem(run, "room", 0, 2))
+    doc, arr = S.load_frame(FrameKey("room", 0, 2).path(run, RASTER_TPATH))
     assert doc["status"] == "ok" and arr["labels"].max() == len(ok.obj_ids)
 
 
 def test_real_depth_is_decoded_once_and_cached(tmp_path, rasterizer):
-    from pipeline.ingest import load_scan, read_depth
-    from pipeline.raster import cached_real_depth, real_depth_path
+    from pipeline.raster import cached_real_depth
+    from pipeline.runfolder import REAL_DEPTH_TPATH, load_scan, path
+    from pipeline.scanformats.common import read_depth
 
     run = tmp_path / "RUN"
     S.make_run(run, rasterizer, frames=1, drops=1)
@@ -377,7 +379,7 @@ def test_real_depth_is_decoded_once_and_cached(tmp_path, rasterizer):
     h, w = scan.height, scan.width
     d = cached_real_depth(run, scan, 0, w, h)
     np.testing.assert_array_equal(d, read_depth(scan, 0))
-    cache = real_depth_path(run, "room", 0)
+    cache = path(run, REAL_DEPTH_TPATH, scene="room", frame=0)
     assert cache.is_file()
     # A later drop reads the cache, not the image: removing the image changes nothing.
     Path(scan.depth_paths[0]).unlink()

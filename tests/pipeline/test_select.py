@@ -17,8 +17,9 @@ from pipeline import blur
 from pipeline.config import SelectConfig, build_config
 from pipeline.errors import ConfigError, InputError
 from pipeline.seeding import item_rng
-from pipeline.select import (BLURRED, DARK, DUPLICATE, FEW_EDGES, KEPT, LIMIT, TEXTURELESS, load_selection,
-                             save_selection, score_frames, select_frames, selection_doc)
+from pipeline.runfolder import load_selection
+from pipeline.select import (BLURRED, DARK, DUPLICATE, FEW_EDGES, KEPT, LIMIT, TEXTURELESS, save_selection,
+                             score_frames, select_frames, selection_doc)
 from pipeline.synthscan.degrade import motion_kernel
 
 H, W = 240, 320
@@ -349,7 +350,7 @@ def test_config_default_and_choices():
 
 def test_stage_on_an_ingested_scan(tmp_path):
     """The stage end to end through the ingest API: one item per scene, outputs, resume."""
-    from pipeline.ingest import save_scan
+    from pipeline.runfolder import save_scan
     from pipeline.io import atomic_write_image
     from pipeline.runner import StageContext
     from pipeline.select import STAGE

@@ -10,7 +10,8 @@ import pytest
 
 from pipeline.config import SimulateConfig
 from pipeline.errors import InputError, UserError
-from pipeline.simulate import load_placement, placement_path, read_placement, save_placement, simulate
+from pipeline.runfolder import PLACEMENT_TPATH, load_placement, path, read_placement, save_placement
+from pipeline.simulate import simulate
 from pipeline.types import Placement
 
 
@@ -41,8 +42,8 @@ def test_placement_round_trip(tmp_path):
                   R_m2w=Rotation.random(3, random_state=1).as_matrix(), t_m2w=rng.normal(size=(3, 3)),
                   at_rest=np.array([True, False, True]), max_penetration=0.000123456789,
                   verdict="rejected:never-settled")
-    path = placement_path(tmp_path, "kitchen", 3)
-    save_placement(path, p, extra={"seconds": 1.5})
+    out = path(tmp_path, PLACEMENT_TPATH, scene="kitchen", drop=3)
+    save_placement(out, p, extra={"seconds": 1.5})
     q = load_placement(tmp_path, "kitchen", 3)
     for f in dataclasses.fields(Placement):
         a, b = getattr(p, f.name), getattr(q, f.name)
@@ -50,8 +51,8 @@ def test_placement_round_trip(tmp_path):
             assert a.dtype == b.dtype and np.array_equal(a, b), f.name
         else:
             assert a == b, f.name
-    assert path.name == "drop0003.json"
-    assert json.loads(path.read_text())["sim_seconds"] == 1.5
+    assert out.name == "drop0003.json"
+    assert json.loads(out.read_text())["sim_seconds"] == 1.5
 
 
 def test_missing_or_broken_placement_is_a_user_error(tmp_path):

@@ -15,7 +15,9 @@ import cv2
 import numpy as np
 import pytest
 
+from pipeline import runfolder
 from pipeline.errors import UserError
+from pipeline.scanformats.common import read_depth
 from pipeline.synthscan import builtin_scan, make_scan
 from pipeline.synthscan.generate import GT_DIR, _motion_extent
 from pipeline.synthscan.writers import LAYOUTS
@@ -202,7 +204,7 @@ def ingest_back(scan: Path, run_dir: Path):
 
     cfg = build_config({"ingest": {"tsdf_voxel": 0.08, "tsdf_trunc": 0.3, "depth_max": 5.0}})
     ingest.ingest_scan(scan, "s", run_dir / "ingest" / "s", cfg)
-    return ingest.load_scan(run_dir, "s")
+    return runfolder.load_scan(run_dir, "s")
 
 
 @pytest.mark.parametrize("layout", [pytest.param("7scenes", marks=pytest.mark.slow), "3rscan", "scannet",
@@ -225,9 +227,9 @@ def test_round_trip_through_ingest(scans, tmp_path, layout, recwarn):
                                    rtol=0)
     assert s.depth_scale == pytest.approx(0.001)
     assert float(s.up_w @ np.array(doc["up_w"])) > 0.99
-    V, F, _ = ingest.load_room_mesh(s)
+    V, F, _ = runfolder.load_room_mesh(s)
     assert len(F) > 0
-    d = ingest.read_depth(s, 0)
+    d = read_depth(s, 0)
     gt = cv2.imread(str(scans[layout] / doc["frames_info"][int(np.flatnonzero(valid)[0])]["gt_depth"]),
                     cv2.IMREAD_UNCHANGED)
     assert d.shape == (doc["height"], doc["width"]) and gt is not None

@@ -14,6 +14,7 @@ import pytest
 from pipeline.config import build_config
 from pipeline.errors import InputError
 from pipeline.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, load_npz
+from pipeline.runfolder import TRACE_TPATH, FrameKey
 from pipeline.runner import StageContext
 from pipeline.trace.denoise import denoise, denoise_ao, joint_bilateral, oidn_available
 from pipeline.trace.pbr import Camera
@@ -155,7 +156,7 @@ def _make_run(run: Path, *, obj_id_in_frame: int = 1, photo_level: int | None = 
 
     ``photo_level``: the frame gets a uniform colour photo of that grey level (else none).
     """
-    from pipeline.ingest import save_scan
+    from pipeline.runfolder import save_scan
     from pipeline.objects import save_library
     from pipeline.scanformats.mesh import ply_bytes
     from pipeline.trace.pbr import primary_rays
@@ -206,7 +207,7 @@ def _ctx(run: Path, **trace) -> StageContext:
 
 
 def test_stage_writes_every_pass_with_the_agreed_names_and_is_deterministic(tmp_path):
-    from pipeline.trace.stage import STAGE, output_path
+    from pipeline.trace.stage import STAGE
 
     run = tmp_path / "run"
     _make_run(run)
@@ -214,7 +215,7 @@ def test_stage_writes_every_pass_with_the_agreed_names_and_is_deterministic(tmp_
     items = STAGE.plan(ctx)
     assert [it.key for it in items] == ["room/drop0000/f000000-f000000"] and items[0].data["frames"] == [0]
     res = STAGE.run_item(ctx, items[0])["frames"]["f000000"]
-    out = output_path(run, "room", 0, 0)
+    out = FrameKey("room", 0, 0).path(run, TRACE_TPATH)
     a = load_npz(out)
     assert set(a) == {"pbr", "ao", "coverage", "shadow_ratio", "albedo", "normal", "spp", "exposure"}
     assert a["exposure"] == 1.0   # no photo: the mesh's own exposure
@@ -239,17 +240,17 @@ def test_stage_writes_every_pass_with_the_agreed_names_and_is_deterministic(tmp_
 
 def test_stage_prefers_preps_room_trace_mesh(tmp_path):
     from pipeline.scanformats.mesh import ply_bytes
-    from pipeline.trace.stage import STAGE, room_mesh_path
-    from pipeline.ingest import load_scan
+    from pipeline.runfolder import load_scan, room_trace_mesh
+    from pipeline.trace.stage import STAGE
 
     run = tmp_path / "run"
     _make_run(run)
     scan = load_scan(run, "room")
-    assert room_mesh_path(run, scan) == scan.mesh_path
+    assert room_trace_mesh(run, scan) == scan.mesh_path
     rv, rf = box_room((-2, -2, 0), (2, 2, 2.5), n=2)
     atomic_write_bytes(run / "prep/room/room_trace.ply", ply_bytes(rv, rf, np.zeros((len(rv), 3), np.uint8)))
-    assert room_mesh_path(run, scan) == str(run / "prep/room/room_trace.ply")
-    assert room_mesh_path(run, scan, "ingest") == scan.mesh_path
+    assert room_trace_mesh(run, scan) == str(run / "prep/room/room_trace.ply")
+    assert room_trace_mesh(run, scan, "ingest") == scan.mesh_path
     ctx = _ctx(run, spp=4, shadow_samples=0, ao_samples=0, env_radiance=0.0, denoise="off")
     STAGE.run_item(ctx, STAGE.plan(ctx)[0])
     a = load_npz(run / "trace/room/drop0000/f000000.npz")
@@ -261,7 +262,7 @@ def test_frames_are_chunked_into_items_and_the_chunking_does_not_change_the_byte
     frame's seed comes from its own name, so the chunk size cannot change what is written."""
     import shutil
 
-    from pipeline.trace.stage import STAGE, output_path
+    from pipeline.trace.stage import STAGE
 
     run = tmp_path / "run"
     _make_run(run)
@@ -277,7 +278,7 @@ def test_frames_are_chunked_into_items_and_the_chunking_does_not_change_the_byte
         assert sum((it.data["frames"] for it in items), []) == [0, 1, 2]
         for it in items:
             STAGE.run_item(ctx, it)
-        written[n] = [output_path(run, "room", 0, k).read_bytes() for k in range(3)]
+        written[n] = [FrameKey("room", 0, k).path(run, TRACE_TPATH).read_bytes() for k in range(3)]
     assert written[1] == written[2] == written[3]
     assert written[1][0] != written[1][1]  # frames draw their own samples
 
@@ -299,7 +300,7 @@ def test_stage_plans_nothing_without_raster_output(tmp_path):
 
 
 def test_photo_lighting_lights_what_the_photos_see_clipped_and_is_off_with_zero_frames(tmp_path):
-    from pipeline.trace.stage import STAGE, output_path
+    from pipeline.trace.stage import STAGE
 
     out = {}
     for name, level, frames in (("none", None, 24), ("grey", 180, 24), ("clipped", 255, 24), ("off", 255, 0)):
@@ -307,11 +308,11 @@ def test_photo_lighting_lights_what_the_photos_see_clipped_and_is_off_with_zero_
         _make_run(run, photo_level=level)
         ctx = _ctx(run, spp=8, shadow_samples=4, photo_frames=frames)
         STAGE.run_item(ctx, STAGE.plan(ctx)[0])
-        out[name] = output_path(run, "room", 0, 0).read_bytes()
-        a = load_npz(output_path(run, "room", 0, 0))
+        out[name] = FrameKey("room", 0, 0).path(run, TRACE_TPATH).read_bytes()
+        a = load_npz(FrameKey("room", 0, 0).path(run, TRACE_TPATH))
         out[name + "_pbr"] = float(a["pbr"].mean())
         STAGE.run_item(ctx, STAGE.plan(ctx)[0])
-        assert output_path(run, "room", 0, 0).read_bytes() == out[name]   # deterministic
+        assert FrameKey("room", 0, 0).path(run, TRACE_TPATH).read_bytes() == out[name]   # deterministic
     # no photo, or photo lighting off: the mesh colours alone, as before
     assert out["off"] == out["none"]
     # a photo the mesh agrees with (no clipping, the closed room leaves no hole) changes nothing either
@@ -325,12 +326,12 @@ def test_stage_measures_the_photos_exposure_against_the_mesh_colours(tmp_path, l
     """Room mesh colour 180 everywhere but the clipped ceiling: a uniform photo of 180 is the mesh's exposure;
     one of 104 is darker by linear(104) / linear(180)."""
     from pipeline.trace.lights import srgb_to_linear
-    from pipeline.trace.stage import STAGE, output_path
+    from pipeline.trace.stage import STAGE
 
     run = tmp_path / "run"
     _make_run(run, photo_level=level)
     ctx = _ctx(run, spp=4, shadow_samples=0)
     STAGE.run_item(ctx, STAGE.plan(ctx)[0])
-    exp = float(load_npz(output_path(run, "room", 0, 0))["exposure"])
+    exp = float(load_npz(FrameKey("room", 0, 0).path(run, TRACE_TPATH))["exposure"])
     ratio = float(srgb_to_linear(np.uint8(level)) / srgb_to_linear(np.uint8(180)))
     assert ratio == pytest.approx(want, abs=1e-3) and exp == pytest.approx(ratio, rel=1e-4)
