@@ -1,0 +1,41 @@
+"""Independent references shared by the benchmarks and the tests: Open3D ray casting (not the pyrender
+rasterizer the pipeline uses) and mask IoU."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def raycast(meshes: list[tuple[np.ndarray, np.ndarray]], K: np.ndarray, T_c2w: np.ndarray, width: int,
+            height: int, x0: int = 0, y0: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Z-depth and mesh index (-1 = none) of the nearest hit at each pixel centre of the window."""
+    import warnings
+
+    with warnings.catch_warnings():  # "built with CUDA support, but no suitable CUDA devices found"
+        warnings.filterwarnings("ignore", message="Open3D was built with CUDA", category=ImportWarning)
+        import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    ids = []
+    for v, f in meshes:
+        ids.append(scene.add_triangles(o3d.core.Tensor(np.asarray(v, np.float32)),
+                                       o3d.core.Tensor(np.asarray(f, np.uint32))))
+    u, v = np.meshgrid(np.arange(x0, x0 + width, dtype=np.float64), np.arange(y0, y0 + height, dtype=np.float64))
+    d_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1)  # z = 1
+    d_w = d_cam @ T_c2w[:3, :3].T
+    o_w = np.broadcast_to(T_c2w[:3, 3], d_w.shape)
+    rays = np.concatenate([o_w, d_w], axis=-1).reshape(-1, 6).astype(np.float32)
+    ans = scene.cast_rays(o3d.core.Tensor(rays))
+    t = ans["t_hit"].numpy().reshape(height, width)
+    gid = ans["geometry_ids"].numpy().reshape(height, width).astype(np.int64)
+    hit = np.isfinite(t)
+    lut = {int(g): i for i, g in enumerate(ids)}
+    idx = np.full((height, width), -1, np.int64)
+    for g, i in lut.items():
+        idx[hit & (gid == g)] = i
+    return np.where(hit, t, 0).astype(np.float32), idx
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    u = np.logical_or(a, b).sum()
+    return 1.0 if u == 0 else float(np.logical_and(a, b).sum() / u)
