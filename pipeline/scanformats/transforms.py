@@ -26,12 +26,12 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.camera import CV_TO_GL
 from pipeline.errors import InputError
 from pipeline.scanformats.common import BadFrameWarning, check_image_sizes, check_intrinsics, check_pose, warn
 from pipeline.types import Scan
 
 FORMAT = "transforms"
-GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def looks_like(root: Path) -> bool:
@@ -119,7 +119,7 @@ def read(root: Path) -> Scan:
         dpaths.append(str(_resolve_image(root, fr["depth_file_path"], "depth", jpath))
                       if fr.get("depth_file_path") else "")
         Ks.append(K)
-        T.append(Tgl @ GL_TO_CV)
+        T.append(Tgl @ CV_TO_GL)  # OpenGL -> OpenCV axes: the flip is its own inverse
         ids.append(i)
     if n_invalid:
         warn(f"{jpath}: skipped {n_invalid} of {len(frames)} frame(s) that have a non-finite (invalid) pose")

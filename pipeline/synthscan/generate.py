@@ -33,6 +33,7 @@ from types import MappingProxyType
 
 import numpy as np
 
+from pipeline.camera import Camera, transform_points
 from pipeline.errors import UserError
 from pipeline.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, encode_image, read_json
 from pipeline.seeding import item_rng
@@ -159,21 +160,11 @@ def _motion_extent(depth: np.ndarray, K: np.ndarray, T_mid: np.ndarray, T_a: np.
     v, u = np.nonzero(d > 0)
     if len(u) == 0:
         return 0.0
-    z = d[v, u].astype(np.float64)
-    uu, vv = u * step, v * step
-    Xc = np.stack([(uu - K[0, 2]) / K[0, 0] * z, (vv - K[1, 2]) / K[1, 1] * z, z], 1)
-    Xw = Xc @ T_mid[:3, :3].T + T_mid[:3, 3]
-
-    def project(T):
-        Tw2c = np.linalg.inv(T)
-        P = Xw @ Tw2c[:3, :3].T + Tw2c[:3, 3]
-        return np.stack([K[0, 0] * P[:, 0] / P[:, 2] + K[0, 2], K[1, 1] * P[:, 1] / P[:, 2] + K[1, 2]], 1)
-
-    return float(np.median(np.linalg.norm(project(T_b) - project(T_a), axis=1)))
-
-
-def _transform_points(T: np.ndarray, P: np.ndarray) -> np.ndarray:
-    return P @ T[:3, :3].T + T[:3, 3]
+    cam = Camera(K=K, T_c2w=T_mid, width=depth.shape[1], height=depth.shape[0])
+    Xw = cam.c2w(cam.unproject(u * step, v * step, d[v, u].astype(np.float64)))
+    uv_a, _ = cam.with_pose(T_a).project(Xw)
+    uv_b, _ = cam.with_pose(T_b).project(Xw)
+    return float(np.median(np.linalg.norm(uv_b - uv_a, axis=1)))
 
 
 def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, height: int = 480,
@@ -299,7 +290,7 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
     # Scanner's mesh and the layout's static files.
     smesh = make_scan_mesh(room, mesh, vertex_radiance, item_rng(seed, "synthscan", "scan_mesh"),
                            cell=0.04 if width * height >= 320 * 240 else 0.08)
-    sverts = _transform_points(T_wc, smesh.vertices)
+    sverts = transform_points(T_wc, smesh.vertices)
     files += write_static(out, layout, scene=scene, K=cams.K, width=width, height=height, depth_K=cams.depth_K,
                           depth_width=cams.depth_width, depth_height=cams.depth_height, up_w=up_w, poses=poses,
                           pose_valid=pose_valid, mesh_vertices=sverts, mesh_faces=smesh.faces,
@@ -355,7 +346,7 @@ def _write_truth(out: Path, room, mesh, smesh, sverts: np.ndarray, T_wc: np.ndar
     vmat = room.quad_material[mesh.vertex_quad]
     base = np.array([m.base_color for m in room.materials], np.float32)
     vcol = _to_srgb8(base[vmat])
-    verts_w = _transform_points(T_wc, mesh.vertices)
+    verts_w = transform_points(T_wc, mesh.vertices)
     atomic_write_bytes(g / "mesh.ply", ply_bytes(
         verts_w, mesh.faces, vcol, vertex_ints={"material_id": vmat, "part_id": room.quad_part[mesh.vertex_quad]},
         comments=("synthscan true geometry, metres, world frame",)))
@@ -376,7 +367,7 @@ def _write_truth(out: Path, room, mesh, smesh, sverts: np.ndarray, T_wc: np.ndar
     R = T_wc[:3, :3]
     lights = []
     for L in room.lights:
-        c = _transform_points(T_wc, L.corners)
+        c = transform_points(T_wc, L.corners)
         lights.append({"name": L.name, "kind": L.kind, "corners": c.tolist(), "position": c.mean(0).tolist(),
                        "normal": (R @ L.normal).tolist(), "size_m": [float(np.linalg.norm(L.corners[1] - L.corners[0])),
                                                                    float(np.linalg.norm(L.corners[3] - L.corners[0]))],

@@ -30,12 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.camera import CV_TO_GL
 from pipeline.io import atomic_write_bytes, atomic_write_json, encode_image
 
 LAYOUTS = ("7scenes", "3rscan", "scannet", "transforms")
-
-# OpenCV camera axes -> OpenGL camera axes (right-multiplied onto camera-to-world poses).
-CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 @dataclass(frozen=True)
