@@ -249,6 +249,8 @@ def render_frame(rasterizer, *, K: np.ndarray, T_c2w: np.ndarray, width: int, he
                                          px_outside=px_outside, box_outside=box_outside, visib=visib,
                                          valid_depth=stored > 0, visib_threshold=cfg.visib_threshold,
                                          rects=rects)
+    for a, R, t in zip(inst, placement.R_m2w, placement.t_m2w):   # the world poses, as simulate placed them
+        a["R_m2w"], a["t_m2w"] = np.asarray(R, np.float64).tolist(), np.asarray(t, np.float64).tolist()
     return FrameResult(status="ok", reason="", check="", instances=inst, depth=depth, labels=labels,
                        amodal=amodal, front=front, stats=stats, visib=visib, written_depth=written, **base)
 

@@ -320,15 +320,18 @@ def read_raster_frame(stem: str | Path) -> RasterFrame:
     T_c2w = np.asarray(doc["T_c2w"], np.float64)
     cam = Camera(K=np.asarray(doc["K"], np.float64), T_c2w=T_c2w, width=int(doc["width"]),
                  height=int(doc["height"]))
-    insts = []
-    for a in doc.get("instances", []):
-        R_m2c, t_m2c = np.asarray(a["R_m2c"], np.float64), np.asarray(a["t_m2c"], np.float64)
-        insts.append(RasterInstance(obj_id=int(a["obj_id"]), R_m2c=R_m2c, t_m2c=t_m2c,
-                                    R_m2w=T_c2w[:3, :3] @ R_m2c, t_m2w=T_c2w[:3, :3] @ t_m2c + T_c2w[:3, 3],
-                                    annotation=a))
+    try:
+        insts = tuple(RasterInstance(obj_id=int(a["obj_id"]), R_m2c=np.asarray(a["R_m2c"], np.float64),
+                                     t_m2c=np.asarray(a["t_m2c"], np.float64),
+                                     R_m2w=np.asarray(a["R_m2w"], np.float64),
+                                     t_m2w=np.asarray(a["t_m2w"], np.float64), annotation=a)
+                      for a in doc.get("instances", []))
+    except KeyError as e:
+        raise InputError(f"{stem}.json: instance without {e}: it was written by an older scansynth; delete "
+                         f"{stem.parent.parent.parent} and run again from the raster stage") from None
     key = _frame_key(stem) or FrameKey(str(doc.get("scene", "")), int(doc.get("drop", 0)), int(doc.get("frame", 0)))
     return RasterFrame(key=key, stem=stem,
-                       status=doc["status"], reason=doc.get("reason", ""), camera=cam, instances=tuple(insts),
+                       status=doc["status"], reason=doc.get("reason", ""), camera=cam, instances=insts,
                        doc=doc)
 
 

@@ -199,7 +199,8 @@ def _make_run(run: Path, *, obj_id_in_frame: int = 1, photo_level: int | None = 
     atomic_write_json(stem.with_suffix(".json"), {
         "status": "ok", "width": W, "height": H, "K": K.tolist(), "T_c2w": T.tolist(),
         "instances": [{"inst_id": 0, "obj_id": obj_id_in_frame, "R_m2c": T_w2c[:3, :3].tolist(),
-                       "t_m2c": (T_w2c[:3, :3] @ t_m2w + T_w2c[:3, 3]).tolist()}]})
+                       "t_m2c": (T_w2c[:3, :3] @ t_m2w + T_w2c[:3, 3]).tolist(),
+                       "R_m2w": np.eye(3).tolist(), "t_m2w": np.asarray(t_m2w, float).tolist()}]})
 
 
 def _ctx(run: Path, **trace) -> StageContext:
