@@ -175,7 +175,7 @@ def _metrics(img: np.ndarray, truth: np.ndarray, regions: dict[str, np.ndarray])
     out["ssim"] = float(smap.mean(axis=-1)[regions["region"]].mean())
     out["noise"] = cl.noise_sigma(img, regions["interior"])
     # brightness of the objects: mean linear luminance over object interiors, this image / the truth
-    from pipeline.trace.lights import srgb_to_linear
+    from pipeline.color import srgb_to_linear
 
     lin = lambda x: _lum(srgb_to_linear(x[regions["interior"]].astype(np.float32) / 255.0))  # noqa: E731
     out["interior_gain"] = (float(lin(img).mean() / max(lin(truth).mean(), 1e-6))
@@ -186,7 +186,7 @@ def _metrics(img: np.ndarray, truth: np.ndarray, regions: dict[str, np.ndarray])
 def _naive_tone(pbr: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """PBR pass re-expressed so that the compositor's sRGB encode yields a gamma-2.2 encode of it."""
     from pipeline.composite import unpremultiply
-    from pipeline.trace.lights import srgb_to_linear
+    from pipeline.color import srgb_to_linear
 
     col = unpremultiply(pbr, cov, np.zeros_like(pbr))
     return srgb_to_linear(np.clip(col, 0, 1) ** (1 / 2.2)) * cov[..., None]

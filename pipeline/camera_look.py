@@ -5,8 +5,8 @@ look as if the same camera had taken them.
 
 Tone response
     The path tracer lights the objects with the room's captured colours decoded by the sRGB curve
-    (:func:`pipeline.trace.lights.srgb_to_linear`) and scaled by ``trace.radiance_scale``. Encoding the
-    rendered radiance with the exact inverse (:func:`linear_to_srgb` after dividing by that scale) gives
+    (:func:`pipeline.color.srgb_to_linear`) and scaled by ``trace.radiance_scale``. Encoding the
+    rendered radiance with the exact inverse (:func:`pipeline.color.linear_to_srgb` after dividing by that scale) gives
     a white object beside a white wall the wall's own pixel value, whatever the camera's true response
     is: a mismatch between the true curve and sRGB only bends the light transport a little, while a
     different encode curve would shift every object's brightness. Values above sensor white clip, as in
@@ -43,12 +43,10 @@ from typing import Callable, Sequence
 import cv2
 import numpy as np
 
-from pipeline.trace.lights import srgb_to_linear
 
 log = logging.getLogger(__name__)
 
-__all__ = ["srgb_to_linear", "linear_to_srgb", "encode_u8", "decode_u8", "noise_sigma", "noise_to_add",
-           "match_blur_sigma", "edge_blur_sigma", "gaussian_blur", "BLUR_CANDIDATES"]
+__all__ = ["noise_sigma", "noise_to_add", "match_blur_sigma", "edge_blur_sigma", "gaussian_blur", "BLUR_CANDIDATES"]
 
 # Gaussian sigmas (pixels) tried when matching the photo's blur level; 0 = the render as traced.
 BLUR_CANDIDATES: tuple[float, ...] = (0.0, 0.4, 0.6, 0.8, 1.0, 1.25, 1.5, 2.0, 2.5, 3.0)
@@ -60,33 +58,6 @@ REBLUR_SIGMA = 1.0        # pixels, re-blur of the edge-width measure
 EDGE_PERCENTILE = 75.0    # percentile of per-edge-pixel blur estimates (see the module docstring)
 EDGE_CANNY = (20, 50)      # Canny thresholds (Sobel magnitude): low, so that many edges vote
 MIN_EDGE_PIXELS = 20      # fewer usable edge pixels: blur not measurable
-
-
-def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    """Linear values to sRGB-encoded float32 in [0, 1] (IEC 61966-2-1), the inverse of the tracer's decode.
-
-    Parameters
-    ----------
-    x : (...,) float
-        Linear values; 1.0 = sensor white. NaN and negative values give 0, values above 1 clip to 1.
-
-    Returns
-    -------
-    (...,) float32 in [0, 1]
-    """
-    v = np.nan_to_num(np.asarray(x, np.float32), nan=0.0, posinf=1.0, neginf=0.0)
-    v = np.clip(v, 0.0, 1.0)
-    return np.where(v <= 0.0031308, v * 12.92, 1.055 * np.power(v, 1.0 / 2.4) - 0.055).astype(np.float32)
-
-
-def decode_u8(photo: np.ndarray) -> np.ndarray:
-    """(H, W, 3) uint8 sRGB photo -> (H, W, 3) float32 linear in [0, 1] (the tracer's convention)."""
-    return srgb_to_linear(np.asarray(photo, np.uint8))
-
-
-def encode_u8(linear: np.ndarray) -> np.ndarray:
-    """Linear (H, W, 3) float -> uint8 sRGB, rounded to nearest (``decode_u8`` then this is the identity)."""
-    return np.round(linear_to_srgb(linear) * 255.0).astype(np.uint8)
 
 
 def gaussian_blur(image: np.ndarray, sigma: float) -> np.ndarray:

@@ -15,10 +15,12 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["LUMINANCE", "srgb_to_linear", "linear_to_srgb", "decode_u8", "encode_u8", "luminance",
+__all__ = ["LUMINANCE", "LUMINANCE_F64", "srgb_to_linear", "linear_to_srgb", "decode_u8", "encode_u8", "luminance",
            "exposure_ratio"]
 
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)  # Rec. 709 luminance weights, linear RGB
+LUMINANCE_F64 = np.array([0.2126, 0.7152, 0.0722])   # Rec. 709 luminance weights, linear RGB
+LUMINANCE = LUMINANCE_F64.astype(np.float32)          # the same weights in float32 (images, radiance)
+LUMINANCE_F64.flags.writeable = False
 LUMINANCE.flags.writeable = False
 
 

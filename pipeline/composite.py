@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from pipeline import camera_look as cl
+from pipeline import camera_look as cl, color
 from pipeline.errors import InputError
 from pipeline.runfolder import (COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, FrameKey, load_raster_frame, load_scan,
                                 load_trace, raster_frames)
@@ -142,9 +142,9 @@ def composite_published(photo: np.ndarray, pbr: np.ndarray, ao: np.ndarray, mask
     out = photo.copy()
     if not m.any():
         return out
-    colour = unpremultiply(pbr, coverage, cl.decode_u8(photo) / max(gain, 1e-12))
+    colour = unpremultiply(pbr, coverage, color.decode_u8(photo) / max(gain, 1e-12))
     a = np.clip(np.nan_to_num(np.asarray(ao, np.float32), nan=1.0), 0.0, 1.0)
-    obj = cl.encode_u8(colour * a[..., None] * np.float32(gain))
+    obj = color.encode_u8(colour * a[..., None] * np.float32(gain))
     out[m] = obj[m]
     return out
 
@@ -226,7 +226,7 @@ def composite_full(photo: np.ndarray, pbr: np.ndarray, coverage: np.ndarray, sha
     _check_image("shadow_ratio", np.asarray(shadow_ratio), hw, None)
     _check_image("labels", np.asarray(labels), hw, None)
     mask = np.asarray(labels) > 0
-    photo_lin = cl.decode_u8(photo)
+    photo_lin = color.decode_u8(photo)
     g = np.float32(gain)
 
     cov = _clean_coverage(coverage) * _dilate(mask, edge_band)
@@ -276,10 +276,10 @@ def composite_full(photo: np.ndarray, pbr: np.ndarray, coverage: np.ndarray, sha
             grain = rng.standard_normal(gray[box].shape, dtype=np.float32) * np.float32(cl.noise_sigma(gray, ring))
             blur_sigma, photo_edge = cl.match_blur_sigma(
                 gray[box], ~_dilate(objects, 1)[box],
-                lambda s: cv2.cvtColor(cl.encode_u8(blend(s, box)[0]), cv2.COLOR_RGB2GRAY).astype(np.float32)
+                lambda s: cv2.cvtColor(color.encode_u8(blend(s, box)[0]), cv2.COLOR_RGB2GRAY).astype(np.float32)
                 + grain, near)
     out_lin, al, s = blend(float(blur_sigma))
-    out = cl.linear_to_srgb(out_lin) * np.float32(255.0)
+    out = color.linear_to_srgb(out_lin) * np.float32(255.0)
 
     noise_added = 0.0
     if noise_sigma is None:

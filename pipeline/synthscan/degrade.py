@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.color import linear_to_srgb
+
 # Kinect-like depth sensor (Nguyen, Izadi, Lovell 2012: axial noise of the Kinect v1).
 DEPTH_NOISE_A = 0.0012        # metres, sigma at 0.4 m
 DEPTH_NOISE_B = 0.0019        # metres / m^2, growth with (z - 0.4)^2
@@ -22,14 +24,7 @@ EDGE_JUMP = 0.05              # metres: a depth step larger than this is an occl
 EDGE_DROPOUT = 0.5            # probability that a pixel on an occlusion edge is invalid
 SPECKLE_DROPOUT = 0.003       # probability of a random invalid pixel
 
-
-def srgb_encode(linear: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] -> sRGB-encoded [0, 1] (IEC 61966-2-1); same shape, float."""
-    x = np.clip(linear, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
-SRGB_LUT_4096 = np.round(srgb_encode(np.linspace(0.0, 1.0, 4096)) * 255.0).astype(np.uint8)
+SRGB_LUT_4096 = np.round(linear_to_srgb(np.linspace(0.0, 1.0, 4096)) * 255.0).astype(np.uint8)
 SRGB_LUT_4096.flags.writeable = False
 
 

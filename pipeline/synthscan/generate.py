@@ -339,13 +339,13 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
 
 def _write_truth(out: Path, room, mesh, smesh, sverts: np.ndarray, T_wc: np.ndarray, exposure: float) -> list[str]:
     """Ground-truth mesh, materials, lights and thin parts, in the layout's world frame."""
-    from pipeline.synthscan.textures import _to_srgb8
+    from pipeline.color import encode_u8
 
     files: list[str] = []
     g = out / GT_DIR
     vmat = room.quad_material[mesh.vertex_quad]
     base = np.array([m.base_color for m in room.materials], np.float32)
-    vcol = _to_srgb8(base[vmat])
+    vcol = encode_u8(base[vmat])
     verts_w = transform_points(T_wc, mesh.vertices)
     atomic_write_bytes(g / "mesh.ply", ply_bytes(
         verts_w, mesh.faces, vcol, vertex_ints={"material_id": vmat, "part_id": room.quad_part[mesh.vertex_quad]},

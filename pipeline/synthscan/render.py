@@ -186,7 +186,7 @@ def room_trace_scene(room: Room, exposure: float, extra: list[ObjectInstance] | 
     T_world_from_canonical : (4, 4) float, the scan's world frame (``scan.json``); None = canonical
     """
     from pipeline.synthscan.room import tessellate
-    from pipeline.synthscan.textures import srgb_to_linear
+    from pipeline.color import srgb_to_linear
     from pipeline.trace.intersect import EmbreeIntersector
     from pipeline.trace.lights import PointLights, build_area_lights
     from pipeline.trace.scene import TraceScene, Textures

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.synthscan.degrade import srgb_encode
+from pipeline.color import linear_to_srgb
 from pipeline.synthscan.room import MeshData, Room, interpolate_on_quads, tessellate
 from pipeline.synthscan.textures import sample_bilinear
 
@@ -68,7 +68,7 @@ def make_scan_mesh(room: Room, light_mesh: MeshData, vertex_radiance: np.ndarray
             albedo[sel] = sample_bilinear(room.textures[m.id], fine.uv[sel])
     lin = albedo * light
     lin[emitter[mat]] = 1.0
-    colors_f = srgb_encode(lin) * 255.0
+    colors_f = linear_to_srgb(lin) * 255.0
 
     # Weld coincident vertices (edges where quads meet), averaging their colours.
     first, inv = _weld(fine.vertices, WELD_TOL)

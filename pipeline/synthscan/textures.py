@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.color import encode_u8, srgb_to_linear
+
 
 def spectral_noise(rng: np.random.Generator, size: int, fmax: float, fmin: float = 1.0,
                    beta: float = 1.0) -> np.ndarray:
@@ -41,12 +43,6 @@ def fractal_noise(rng: np.random.Generator, size: int, octaves: tuple[int, ...] 
     return spectral_noise(rng, size, fmax=float(max(octaves)), fmin=max(1.0, min(octaves) / 2.0), beta=1.0)
 
 
-def _to_srgb8(linear: np.ndarray) -> np.ndarray:
-    x = np.clip(linear, 0.0, 1.0)
-    s = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-    return np.round(s * 255.0).astype(np.uint8)
-
-
 def tiles(rng: np.random.Generator, size: int = 256, n_tiles: int = 2,
           base: tuple[float, float, float] = (0.55, 0.52, 0.47)) -> np.ndarray:
     """Square floor tiles with grout lines and per-tile colour variation; (size, size, 3) uint8 sRGB."""
@@ -61,7 +57,7 @@ def tiles(rng: np.random.Generator, size: int = 256, n_tiles: int = 2,
     local = ij % t
     grout = (local[:, None] < grout_w) | (local[None, :] < grout_w)
     col[grout] = np.asarray([0.18, 0.17, 0.16], np.float32)
-    return _to_srgb8(col)
+    return encode_u8(col)
 
 
 def wood(rng: np.random.Generator, size: int = 256,
@@ -74,7 +70,7 @@ def wood(rng: np.random.Generator, size: int = 256,
     grain = 0.5 + 0.5 * np.sin(phase)
     fine = fractal_noise(rng, size, (16, 64, 128))
     tone = 0.65 + 0.35 * grain ** 3 + 0.15 * (fine - 0.5)
-    return _to_srgb8(np.asarray(base, np.float32)[None, None, :] * tone[..., None])
+    return encode_u8(np.asarray(base, np.float32)[None, None, :] * tone[..., None])
 
 
 def paint(rng: np.random.Generator, size: int = 256,
@@ -83,7 +79,7 @@ def paint(rng: np.random.Generator, size: int = 256,
     mottle = fractal_noise(rng, size, (2, 4, 8))
     stipple = fractal_noise(rng, size, (32, 64, 128))
     tone = 0.90 + 0.12 * (mottle - 0.5) + 0.10 * (stipple - 0.5)
-    return _to_srgb8(np.asarray(base, np.float32)[None, None, :] * tone[..., None])
+    return encode_u8(np.asarray(base, np.float32)[None, None, :] * tone[..., None])
 
 
 def cardboard(rng: np.random.Generator, size: int = 256,
@@ -99,7 +95,7 @@ def cardboard(rng: np.random.Generator, size: int = 256,
     lab = slice(size // 5, size // 5 + size // 6)
     col[lab, size // 8: size // 2] = np.asarray([0.85, 0.85, 0.8], np.float32)
     col[lab, size // 8: size // 2] *= (0.9 + 0.1 * fibre[lab, size // 8: size // 2])[..., None]
-    return _to_srgb8(col)
+    return encode_u8(col)
 
 
 def fabric(rng: np.random.Generator, size: int = 256,
@@ -109,12 +105,12 @@ def fabric(rng: np.random.Generator, size: int = 256,
     weave = 0.5 + 0.25 * np.sin(2 * np.pi * 64 * ij)[:, None] + 0.25 * np.sin(2 * np.pi * 64 * ij)[None, :]
     n = fractal_noise(rng, size, (8, 32))
     tone = 0.75 + 0.25 * weave + 0.1 * (n - 0.5)
-    return _to_srgb8(np.asarray(base, np.float32)[None, None, :] * tone[..., None])
+    return encode_u8(np.asarray(base, np.float32)[None, None, :] * tone[..., None])
 
 
 def plain(rng: np.random.Generator, size: int = 8, base: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> np.ndarray:
     """A flat colour (used for emitters); ``rng`` is accepted for a uniform signature."""
-    return _to_srgb8(np.broadcast_to(np.asarray(base, np.float32), (size, size, 3)).copy())
+    return encode_u8(np.broadcast_to(np.asarray(base, np.float32), (size, size, 3)).copy())
 
 
 KINDS = {"tiles": tiles, "wood": wood, "paint": paint, "cardboard": cardboard, "fabric": fabric, "plain": plain}
@@ -125,12 +121,6 @@ def make_texture(kind: str, rng: np.random.Generator, base: tuple[float, float, 
     if kind == "plain":
         return plain(rng, 8, base)
     return KINDS[kind](rng, size, base=base)
-
-
-def srgb_to_linear(srgb8: np.ndarray) -> np.ndarray:
-    """uint8 sRGB -> float32 linear in [0, 1] (IEC 61966-2-1)."""
-    s = srgb8.astype(np.float32) / 255.0
-    return np.where(s <= 0.04045, s / 12.92, np.power((s + 0.055) / 1.055, 2.4)).astype(np.float32)
 
 
 def sample_bilinear(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.color import LUMINANCE_F64
 from pipeline.trace.sampling import ALPHA_MIN, cosine_hemisphere, ggx_d, ggx_sample_vndf, reflect, smith_g1
 
 DIELECTRIC_F0 = 0.04  # reflectance at normal incidence of common dielectrics (IOR ~1.5)
@@ -53,7 +54,6 @@ class Lobes:
     p_spec: np.ndarray   # (R,) probability of sampling the specular lobe
 
 
-LUM = np.array([0.2126, 0.7152, 0.0722])
 
 
 def schlick(f0: np.ndarray, cos: np.ndarray, f90: np.ndarray | None = None) -> np.ndarray:
@@ -75,8 +75,8 @@ def prepare(mat: Material, wo_z: np.ndarray) -> Lobes:
     k = ((1 - np.clip(wo_z, 0, 1)) ** 5)[:, None]
     fd = f0d + (np.clip(50 * f0d, 0, 1) - f0d) * k  # dielectric Fresnel at wo (scalar per ray)
     diff = mat.base_color * ((1 - m) * (1 - fd) / np.pi)
-    ws = (f0 + (f90 - f0) * k) @ LUM.astype(dt)
-    wd = (diff @ LUM.astype(dt)) * np.pi
+    ws = (f0 + (f90 - f0) * k) @ LUMINANCE_F64.astype(dt)
+    wd = (diff @ LUMINANCE_F64.astype(dt)) * np.pi
     tot = ws + wd
     p = np.where(tot > 0, ws / np.where(tot > 0, tot, 1), 0.5)
     # keep both lobes sampled when both exist, so MIS never meets a zero pdf for a non-zero f

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.color import LUMINANCE
 from pipeline.geometry import up_frame
 
 log = logging.getLogger(__name__)
@@ -41,16 +42,6 @@ def env_lookup(env: np.ndarray, up: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """Radiance (N, 3) float32 of the environment map ``env (ENV_H, ENV_W, 3)`` in directions ``dirs (N, 3)``."""
     r, c = env_bin(dirs, up)
     return np.asarray(env, np.float32)[r, c]
-
-
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)  # Rec. 709 luminance weights, linear RGB
-
-
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    """sRGB colours (uint8 0..255 or float 0..1) to linear float32 in [0, 1] (IEC 61966-2-1)."""
-    x = np.asarray(c)
-    x = x.astype(np.float32) / 255.0 if x.dtype == np.uint8 else x.astype(np.float32)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def detect_bright_triangles(colors_u8: np.ndarray, faces: np.ndarray, *, threshold: int = 250) -> np.ndarray:

@@ -21,10 +21,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.color import LUMINANCE
 from pipeline.tolerances import TRACE_RAY_EPS_M
 from pipeline.trace import bsdf
 from pipeline.trace.intersect import Hits, offset_origins
-from pipeline.trace.lights import LUMINANCE, sample_area_lights
+from pipeline.trace.lights import sample_area_lights
 from pipeline.trace.sampling import (cosine_hemisphere, frame_to_local, frame_to_world, local_frame,
                                      power_heuristic, to_world)
 from pipeline.trace.scene import TraceScene

@@ -27,7 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.trace.lights import ENV_H, ENV_W, LUMINANCE, env_bin, env_lookup, srgb_to_linear  # noqa: F401
+from pipeline.color import LUMINANCE, srgb_to_linear
+from pipeline.trace.lights import ENV_H, ENV_W, env_bin
 
 log = logging.getLogger(__name__)
 

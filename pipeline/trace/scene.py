@@ -14,9 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.color import srgb_to_linear
 from pipeline.trace.intersect import EmbreeIntersector, Intersector
 from pipeline.trace.lights import (AreaLights, PointLights, build_area_lights, detect_bright_triangles,
-                                   env_lookup, mean_radiance, published_lights, srgb_to_linear)
+                                   env_lookup, mean_radiance, published_lights)
 from pipeline.types import ObjectModel
 
 log = logging.getLogger(__name__)

@@ -23,6 +23,7 @@ import logging
 
 import numpy as np
 
+from pipeline.color import LUMINANCE_F64
 from pipeline.trace.intersect import EmbreeIntersector, Intersector, offset_origins
 from pipeline.trace.pbr import Camera, primary_rays
 from pipeline.trace.sampling import cosine_hemisphere, to_world
@@ -112,13 +113,12 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
     n = pix.size
     if n == 0:
         return out.reshape(H, W)
-    lum = np.array([0.2126, 0.7152, 0.0722])
     # E0, the light arriving without objects: cosine-weighted hemisphere rays against the room alone
     pr = np.repeat(np.arange(n), samples)
     uu = rng.random((2, pr.size))
     dl, _ = cosine_hemisphere(uu[0], uu[1])
     dw = to_world(dl, ng[pr].astype(np.float64)).astype(np.float32)
-    L0 = _room_radiance(scene, room_isect, offset_origins(p[pr], ng[pr], dw, eps), dw)[0] @ lum
+    L0 = _room_radiance(scene, room_isect, offset_origins(p[pr], ng[pr], dw, eps), dw)[0] @ LUMINANCE_F64
     E0 = np.bincount(pr, weights=L0, minlength=n) / samples
     E1 = E0.copy()
     # what the objects change: rays sampled uniformly inside the cone of each nearby bounding sphere
@@ -155,11 +155,11 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
             continue
         Lb, t_room = _room_radiance(scene, room_isect, org[b], dw[b])
         b_ok = t_room > ho.t[b]
-        b, Lb = b[b_ok], Lb[b_ok] @ lum
+        b, Lb = b[b_ok], Lb[b_ok] @ LUMINANCE_F64
         fo = scene.faces[ho.prim[b] + scene.num_room_tris]
         ua, va = ho.u[b][:, None], ho.v[b][:, None]
         alb = ((1 - ua - va) * scene.albedo[fo[:, 0]] + ua * scene.albedo[fo[:, 1]]
-               + va * scene.albedo[fo[:, 2]]) @ lum
+               + va * scene.albedo[fo[:, 2]]) @ LUMINANCE_F64
         inside = (np.einsum("ij,ikj->ik", dw[b].astype(np.float64), axes[prk[b]]) >= cos_max[prk[b]]) & cone[prk[b]]
         shared = np.maximum(inside.sum(axis=1), 1)
         pdf = 1.0 / (2 * np.pi * (1 - cm[b]))
@@ -179,7 +179,7 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
         free = ~room_isect.occluded(org_l, wl[ok], tmax)
         ok = ok[free]
         org_l, tmax = org_l[free], tmax[free]
-        e = (pl.intensity[k] @ lum) * cos[ok] / dd[ok] ** 2 / np.pi  # as radiance from a white surface
+        e = (pl.intensity[k] @ LUMINANCE_F64) * cos[ok] / dd[ok] ** 2 / np.pi  # as radiance from a white surface
         E0[ok] += e
         E1[ok] += np.where(obj_isect.occluded(org_l, wl[ok], tmax), 0.0, e)
     ratio = np.where(E0 > 0, E1 / np.where(E0 > 0, E0, 1.0), 1.0)

@@ -5,20 +5,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline import camera_look as cl
-from pipeline.trace.lights import srgb_to_linear
+from pipeline import camera_look as cl, color
+from pipeline.color import srgb_to_linear
 
 
 def test_encode_is_the_exact_inverse_of_the_tracers_decode_for_every_byte():
     v = np.arange(256, dtype=np.uint8).reshape(16, 16)
     img = np.stack([v, v[::-1], v.T], axis=-1)
-    assert np.array_equal(cl.encode_u8(srgb_to_linear(img)), img)
-    assert np.array_equal(cl.encode_u8(cl.decode_u8(img)), img)
+    assert np.array_equal(color.encode_u8(srgb_to_linear(img)), img)
+    assert np.array_equal(color.encode_u8(color.decode_u8(img)), img)
 
 
 def test_linear_to_srgb_known_values_and_bad_inputs():
     x = np.array([0.0, 0.0031308, 0.18, 1.0, 2.0, -1.0, np.nan, np.inf], np.float32)
-    y = cl.linear_to_srgb(x)
+    y = color.linear_to_srgb(x)
     assert y.dtype == np.float32 and np.isfinite(y).all()
     assert y[0] == 0 and y[3] == pytest.approx(1.0) and y[4] == pytest.approx(1.0)  # clips like a sensor
     assert y[1] == pytest.approx(0.0031308 * 12.92, rel=1e-5)

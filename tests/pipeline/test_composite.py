@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import camera_look as cl
+from pipeline import camera_look as cl, color
 from pipeline.composite import composite_depth, composite_full, composite_published, unpremultiply
 from pipeline.runfolder import COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, FrameKey
 
@@ -66,7 +66,7 @@ def test_published_is_pbr_times_ao_inside_the_mask_and_the_photo_outside():
     out = composite_published(photo, pbr, ao, labels > 0, coverage=cov)
     m = labels > 0
     assert np.array_equal(out[~m], photo[~m])
-    want = cl.encode_u8(np.array([0.5, 0.2, 0.1], np.float32) * 0.8)
+    want = color.encode_u8(np.array([0.5, 0.2, 0.1], np.float32) * 0.8)
     assert (out[m] == want).all()   # un-premultiplied: edge pixels are not darker than the interior
 
 
@@ -91,7 +91,7 @@ def test_full_changes_only_the_objects_their_edge_band_and_their_shadows():
     allowed = binary_dilation(labels > 0, np.ones((3, 3), bool)) | (sr != 1)
     assert not (changed & ~allowed).any()
     interior = (cov == 1)
-    assert (res.image[interior] == cl.encode_u8(np.array([0.5, 0.2, 0.1], np.float32))).all()
+    assert (res.image[interior] == color.encode_u8(np.array([0.5, 0.2, 0.1], np.float32))).all()
 
 
 def test_full_soft_edges_blend_by_coverage_in_linear_light():
@@ -100,7 +100,7 @@ def test_full_soft_edges_blend_by_coverage_in_linear_light():
     res = _full(photo, pbr, cov, np.ones((H, W), np.float32), labels)
     edge = (cov > 0.2) & (cov < 0.8)
     assert edge.any()
-    want = cl.encode_u8(cl.decode_u8(photo)[edge] * (1 - cov[edge])[:, None])
+    want = color.encode_u8(color.decode_u8(photo)[edge] * (1 - cov[edge])[:, None])
     assert np.abs(res.image[edge].astype(int) - want.astype(int)).max() <= 1
     hard = _full(photo, pbr, cov, np.ones((H, W), np.float32), labels, soft_edges=False)
     assert set(np.unique(hard.image[..., 0])) <= {0, 200}
@@ -109,7 +109,7 @@ def test_full_soft_edges_blend_by_coverage_in_linear_light():
 
 def test_white_object_beside_a_white_wall_has_the_walls_pixel_value():
     photo = np.full((H, W, 3), 230, np.uint8)
-    lin = float(cl.decode_u8(np.array([230], np.uint8))[0])
+    lin = float(color.decode_u8(np.array([230], np.uint8))[0])
     pbr, cov, labels, _ = _frame(colour=(lin, lin, lin))
     res = _full(photo, pbr, cov, np.ones((H, W), np.float32), labels)
     assert (res.image == 230).all()
@@ -123,7 +123,7 @@ def test_shadows_darken_the_room_by_the_ratio_in_linear_light():
     pbr, cov, labels, sr = _frame()
     res = _full(photo, pbr, cov, sr, labels)
     ring = (sr < 1) & (cov == 0)
-    want = cl.encode_u8(cl.decode_u8(photo)[ring] * 0.6)
+    want = color.encode_u8(color.decode_u8(photo)[ring] * 0.6)
     assert np.abs(res.image[ring].astype(int) - want.astype(int)).max() <= 1
     off = _full(photo, pbr, cov, sr, labels, shadows=False)
     assert np.array_equal(off.image[ring], photo[ring])
@@ -141,18 +141,18 @@ def _aa_texture(seed: int, h: int = H, w: int = W) -> np.ndarray:
 
 def test_measured_blur_and_noise_follow_the_photo():
     rng = np.random.default_rng(3)
-    lin = cl.srgb_to_linear(np.round(_aa_texture(1)).astype(np.uint8)[..., None].repeat(3, -1))   # sharp room
-    obj = cl.srgb_to_linear(np.round(_aa_texture(2)).astype(np.uint8)[..., None].repeat(3, -1))
+    lin = color.srgb_to_linear(np.round(_aa_texture(1)).astype(np.uint8)[..., None].repeat(3, -1))   # sharp room
+    obj = color.srgb_to_linear(np.round(_aa_texture(2)).astype(np.uint8)[..., None].repeat(3, -1))
     _, cov, labels, _ = _frame(r=14.0)
     pbr = obj * cov[..., None]   # a textured object, as sharp as the tracer makes it
     sr = np.ones((H, W), np.float32)
-    photo = cl.encode_u8(cl.gaussian_blur(lin, 1.5))
+    photo = color.encode_u8(cl.gaussian_blur(lin, 1.5))
     noisy = np.clip(np.round(photo + 4.0 * rng.standard_normal(photo.shape)), 0, 255).astype(np.uint8)
     res = composite_full(noisy, pbr, cov, sr, labels, rng=np.random.default_rng(0))
     assert 1.0 <= res.blur_sigma <= 2.0
     assert res.photo_noise == pytest.approx(4.0, rel=0.3)
     assert res.noise_added > 2.0
-    sharp_res = composite_full(cl.encode_u8(lin), pbr, cov, sr, labels, rng=np.random.default_rng(0))
+    sharp_res = composite_full(color.encode_u8(lin), pbr, cov, sr, labels, rng=np.random.default_rng(0))
     assert sharp_res.blur_sigma <= 0.6 and sharp_res.noise_added < 1.5
 
 
@@ -207,7 +207,7 @@ def test_object_filling_the_frame():
     res = composite_full(photo, pbr, cov, np.ones((H, W), np.float32), np.ones((H, W), np.uint16),
                          rng=np.random.default_rng(0))
     assert np.isfinite(res.photo_noise) and res.photo_noise >= 0
-    assert (res.image == cl.encode_u8(np.float32(0.3))).mean() > 0.5
+    assert (res.image == color.encode_u8(np.float32(0.3))).mean() > 0.5
 
 
 @pytest.mark.parametrize("level", [0, 3, 252, 255])
@@ -216,7 +216,7 @@ def test_very_dark_and_saturated_photos(level):
     pbr, cov, labels, sr = _frame()
     res = composite_full(photo, pbr, cov, sr, labels, rng=np.random.default_rng(0))
     _sane(res.image, photo)
-    obj = cl.encode_u8(np.array([0.5, 0.2, 0.1], np.float32))
+    obj = color.encode_u8(np.array([0.5, 0.2, 0.1], np.float32))
     assert np.abs(res.image[cov == 1].astype(int) - obj.astype(int)).max() <= 3
     if level >= 252:
         assert (res.image[sr < 1] < level).all()   # a shadow shows on a clipped white wall too
@@ -408,13 +408,13 @@ def test_stage_on_the_trace_stages_real_output(tmp_path):
 
 def test_blurred_contact_shadow_has_no_bright_rim_at_the_object():
     photo = np.full((H, W, 3), 200, np.uint8)
-    dark = float(cl.decode_u8(np.array([200], np.uint8))[0]) * 0.6   # the object is as dark as the shadow
+    dark = float(color.decode_u8(np.array([200], np.uint8))[0]) * 0.6   # the object is as dark as the shadow
     pbr, cov, labels, sr = _frame(colour=(dark, dark, dark))
     res = _full(photo, pbr, cov, sr, labels, blur_sigma=1.5)
     yy, xx = np.mgrid[0:H, 0:W]
     dist = np.hypot(xx - 40.0, yy - 30.0) - 12.0          # distance outside the disk's edge, pixels
     near = (dist > 0.5) & (dist < 3.0) & (np.hypot(xx - 40.0, yy - 34.0) < 13.5)   # well inside the ring
-    shadowed = int(cl.encode_u8(np.float32(dark)))
+    shadowed = int(color.encode_u8(np.float32(dark)))
     assert near.any() and (np.abs(res.image[near].astype(int) - shadowed) <= 2).all()
 
 

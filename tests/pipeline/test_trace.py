@@ -14,7 +14,8 @@ from scipy import stats
 from pipeline.tolerances import TRACE_FURNACE_REL_TOL
 from pipeline.trace import bsdf
 from pipeline.trace.intersect import EmbreeIntersector, NumPySlowIntersector
-from pipeline.trace.lights import AreaLights, published_lights, srgb_to_linear
+from pipeline.color import srgb_to_linear
+from pipeline.trace.lights import AreaLights, published_lights
 from pipeline.trace.pbr import Camera, RenderSettings, ambient_occlusion, render, trace_mask
 from pipeline.trace.sampling import ggx_reflect_pdf, ggx_sample_vndf, reflect
 from pipeline.trace.scene import ObjectInstance, build_scene

@@ -326,7 +326,7 @@ def test_photo_lighting_lights_what_the_photos_see_clipped_and_is_off_with_zero_
 def test_stage_measures_the_photos_exposure_against_the_mesh_colours(tmp_path, level, want):
     """Room mesh colour 180 everywhere but the clipped ceiling: a uniform photo of 180 is the mesh's exposure;
     one of 104 is darker by linear(104) / linear(180)."""
-    from pipeline.trace.lights import srgb_to_linear
+    from pipeline.color import srgb_to_linear
     from pipeline.trace.stage import STAGE
 
     run = tmp_path / "run"
