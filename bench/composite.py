@@ -94,7 +94,7 @@ def _make_views(tmp: Path, views: int):
     from pipeline.seeding import item_rng
     from pipeline.synthscan.generate import make_scan
     from pipeline.synthscan.render import traced_room_from_scan
-    from pipeline.trace.pbr import Camera
+    from pipeline.camera import Camera
     from pipeline.trace.scene import build_scene, instance_from_model
 
     models = SHARED_DATA / "objects" / "lmo" / "models"
@@ -198,7 +198,6 @@ def run(views: int, quick: bool) -> BenchResult:
     from pipeline.composite import composite_full, composite_published
     from pipeline.seeding import item_rng
     from pipeline.synthscan.render import render_traced_view
-    from pipeline.trace.pbr import primary_rays
     from pipeline.trace.scene import build_scene
     from pipeline.trace.shadow import split_intersectors
 
@@ -294,7 +293,7 @@ def run(views: int, quick: bool) -> BenchResult:
         e_est1 = frame_exposure(scene, cam, photo1, radiance_scale=tcfg.radiance_scale,
                                 threshold=tcfg.light_threshold)
         split = split_intersectors(scene)
-        o, d = primary_rays(cam, np.arange(W * H), np.full((W * H, 2), 0.5))
+        o, d = cam.rays(np.arange(W * H), np.full((W * H, 2), 0.5))
         hh = scene.intersector.intersect(o, d)
         labels = np.where(hh.hit, scene.tri_inst[np.maximum(hh.prim, 0)], 0).astype(np.uint16).reshape(H, W)
         # true shadow ratio: truth / photo luminance where no object is seen (correlated samples)
@@ -611,14 +610,13 @@ SHEET_OBJECTS = (1, 5, 8, 9)   # LM-O ape, can, driller, duck
 
 def _place_on_surface(scene_room, cam, up: np.ndarray, model, rng) -> tuple[np.ndarray, np.ndarray] | None:
     """A pose putting ``model`` upright on a horizontal surface seen near the lower middle of the view."""
-    from pipeline.trace.pbr import primary_rays
 
     w, h = cam.width, cam.height
     xs = np.linspace(0.3 * w, 0.7 * w, 9)
     ys = np.linspace(0.45 * h, 0.85 * h, 7)
     px = np.array([[x, y] for y in ys for x in xs])
     pix = np.floor(px[:, 1]).astype(int) * w + np.floor(px[:, 0]).astype(int)
-    o, d = primary_rays(cam, pix, np.full((len(pix), 2), 0.5))
+    o, d = cam.rays(pix, np.full((len(pix), 2), 0.5))
     hits = scene_room.intersector.intersect(o, d)
     ok = np.flatnonzero(hits.hit & (hits.t > 0.5) & (hits.t < 2.5))
     if ok.size == 0:
@@ -664,7 +662,8 @@ def real_sheet(frames: int = 4, scale: float = 0.5) -> None:
     from pipeline.objects import load_library
     from pipeline.scanformats.mesh import read_room_ply
     from pipeline.seeding import item_rng
-    from pipeline.trace.pbr import Camera, render, trace_mask
+    from pipeline.camera import Camera
+    from pipeline.trace.pbr import render, trace_mask
     from pipeline.trace.scene import build_scene, instance_from_model
     from pipeline.trace.shadow import shadow_ratio
     from pipeline.trace.stage import settings_from_config
@@ -710,9 +709,8 @@ def real_sheet(frames: int = 4, scale: float = 0.5) -> None:
         scene = build_scene(rv, rf, rc, insts, up=scan.up_w, lighting=tcfg.lighting,
                             radiance_scale=tcfg.radiance_scale, light_threshold=tcfg.light_threshold,
                             light_gain=tcfg.light_gain, light_vertices=light_v, env_map=env_map)
-        from pipeline.trace.pbr import primary_rays
 
-        o, d = primary_rays(cam, np.arange(w * h), np.full((w * h, 2), 0.5))
+        o, d = cam.rays(np.arange(w * h), np.full((w * h, 2), 0.5))
         hh = scene.intersector.intersect(o, d)
         labels = np.where(hh.hit, scene.tri_inst[np.maximum(hh.prim, 0)], 0).astype(np.uint16).reshape(h, w)
         t0 = time.perf_counter()

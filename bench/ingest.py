@@ -31,7 +31,7 @@ def measure(scan_dir: Path, voxel: float, work: Path) -> dict:
     from pipeline.ingest import ingest_scan
     from pipeline.runfolder import load_room_mesh
     from pipeline.scanformats.common import read_depth
-    from pipeline.reconstruct import depth_renderer
+    from bench.reference import raycast
 
     cfg = build_config({"scan": {"paths": [str(scan_dir)]},
                         "ingest": {"tsdf_voxel": voxel, "tsdf_trunc": TRUNC_VOXELS * voxel}})
@@ -43,11 +43,10 @@ def measure(scan_dir: Path, voxel: float, work: Path) -> dict:
         cpu.append(time.process_time() - c0)
     seconds, cpu = min(seconds), min(cpu)
     V, F, _ = load_room_mesh(scan)
-    render = depth_renderer(V, F)
     diffs, valid, covered = [], 0, 0
     for i in range(scan.num_frames):
         real = read_depth(scan, i)
-        mesh = render(scan.K[i], scan.T_c2w[i], scan.width, scan.height)
+        mesh = raycast([(V, F)], scan.K[i], scan.T_c2w[i], scan.width, scan.height)[0]
         ok_real = (real > 0) & (real <= cfg.ingest.depth_max)
         both = ok_real & (mesh > 0)
         valid += int(ok_real.sum())

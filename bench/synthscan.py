@@ -28,6 +28,7 @@ from bench.common import BenchResult
 def _render_floor(width: int, height: int, frames: int) -> float:
     """Seconds for one colour + one depth render per frame (the same room, trajectory and renderer)."""
     from pipeline.seeding import item_rng
+    from pipeline.camera import Camera
     from pipeline.synthscan.render import RasterPhotoRenderer
     from pipeline.synthscan.room import make_room, tessellate
     from pipeline.synthscan.trajectory import intrinsics, walk
@@ -39,8 +40,8 @@ def _render_floor(width: int, height: int, frames: int) -> float:
     t0 = time.perf_counter()
     r = RasterPhotoRenderer(room, mesh, np.ones((len(mesh.vertices), 3), np.float32))
     for T in poses:
-        r.render_color(T, K, width, height)
-        r.render_depth(T, K, width, height)
+        r.render_color(Camera(K, T, width, height))
+        r.render_depth(Camera(K, T, width, height))
     r.close()
     return time.perf_counter() - t0
 

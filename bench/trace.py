@@ -103,10 +103,9 @@ def rng_rot(rng_seed: int) -> np.ndarray:
 
 
 def labels_of(scene, cam) -> np.ndarray:
-    from pipeline.trace.pbr import primary_rays
 
     n = cam.width * cam.height
-    o, d = primary_rays(cam, np.arange(n), np.full((n, 2), 0.5))
+    o, d = cam.rays(np.arange(n), np.full((n, 2), 0.5))
     h = scene.intersector.intersect(o, d)
     return np.where(h.hit, scene.tri_inst[np.maximum(h.prim, 0)], 0).astype(np.uint16).reshape(cam.height, cam.width)
 
@@ -122,7 +121,8 @@ def main(argv: list[str] | None = None) -> None:
     from pipeline.config import TraceConfig
     from pipeline.objects import load_library
     from pipeline.trace.denoise import denoise, oidn_available
-    from pipeline.trace.pbr import Camera, render, trace_mask
+    from pipeline.camera import Camera
+    from pipeline.trace.pbr import render, trace_mask
     from pipeline.trace.scene import build_scene
     from pipeline.trace.stage import settings_from_config
 

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.camera import image_plane, project_points
+
 NO_BOX = (-1, -1, -1, -1)
 
 
@@ -97,8 +99,8 @@ def projected_window(K: np.ndarray, R_m2c: np.ndarray, t_m2c: np.ndarray, points
         return None
     if np.any(z <= znear):
         return (cx0, cy0, cx1, cy1)
-    u = K[0, 0] * p[:, 0] / z + K[0, 2]
-    v = K[1, 1] * p[:, 1] / z + K[1, 2]
+    uv, _ = project_points(K, p)
+    u, v = uv[:, 0], uv[:, 1]
     # Pixel c covers centre u = c; one pixel of margin for rounding in the rasterizer.
     x0 = max(cx0, math.ceil(u.min()) - 1)
     x1 = min(cx1, math.floor(u.max()) + 2)
@@ -300,8 +302,7 @@ def quantize_depth(depth_m: np.ndarray, depth_scale_mm: float) -> np.ndarray:
 def ray_length_factor(K: np.ndarray, width: int, height: int) -> np.ndarray:
     """(H, W) float64 distance / z-depth along each pixel centre's ray (bop_toolkit's
     ``misc.depth_im_to_dist_im_fast``, which turns depth into distance from the camera centre)."""
-    u = (np.arange(width, dtype=np.float64) - K[0, 2]) / K[0, 0]
-    v = (np.arange(height, dtype=np.float64) - K[1, 2]) / K[1, 1]
+    u, v = image_plane(K, width, height)
     return np.sqrt(1.0 + u[None, :] ** 2 + v[:, None] ** 2)
 
 

@@ -32,7 +32,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["Camera", "RGBDRig", "CV_TO_GL", "scaled_intrinsics", "transform_points"]
+__all__ = ["Camera", "RGBDRig", "CV_TO_GL", "scaled_intrinsics", "transform_points", "project_points",
+           "unproject_points", "image_plane", "gl_camera_pose", "gl_intrinsics"]
 
 # OpenCV camera axes (x right, y down, z forward) -> OpenGL camera axes (x right, y up, z backward).
 CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -43,6 +44,54 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """``points (N, 3)`` moved by the rigid 4x4 ``T`` (float64)."""
     T = np.asarray(T, np.float64)
     return np.asarray(points, np.float64) @ T[:3, :3].T + T[:3, 3]
+
+
+def project_points(K: np.ndarray, points_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points (N, 3) -> image points ``uv (N, 2)`` float64 and depths ``z (N,)``.
+
+    Points at or behind the camera (``z <= 0``) give non-finite or meaningless ``uv``: check ``z``.
+    """
+    p = np.asarray(points_c, np.float64)
+    z = p[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * p[:, 0] / z + K[0, 2]
+        v = K[1, 1] * p[:, 1] / z + K[1, 2]
+    return np.stack([u, v], axis=1), z
+
+
+def unproject_points(K: np.ndarray, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Image points ``(u, v)`` at camera depths ``z`` (shapes that broadcast) -> camera-frame points
+    ``(..., 3)`` float64."""
+    z = np.asarray(z, np.float64)
+    x = (np.asarray(u, np.float64) - K[0, 2]) / K[0, 0] * z
+    y = (np.asarray(v, np.float64) - K[1, 2]) / K[1, 1] * z
+    x, y, z = np.broadcast_arrays(x, y, z)
+    return np.stack([x, y, z], axis=-1)
+
+
+def image_plane(K: np.ndarray, width: int, height: int, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
+    """Where the rays through the pixel centres meet the plane ``z = 1``: ``x (width,)`` and ``y (height,)``
+    in ``dtype``, so the ray through pixel ``(r, c)`` is ``(x[c], y[r], 1)``."""
+    dt = np.dtype(dtype).type
+    x = (np.arange(width, dtype=dtype) - dt(K[0, 2])) / dt(K[0, 0])
+    y = (np.arange(height, dtype=dtype) - dt(K[1, 2])) / dt(K[1, 1])
+    return x, y
+
+
+def gl_camera_pose(T_c2w: np.ndarray) -> np.ndarray:
+    """(4, 4) float64 camera-to-world with OpenGL camera axes (y up, looking down -z), as pyrender expects,
+    of an OpenCV camera-to-world pose."""
+    return np.asarray(T_c2w, dtype=np.float64) @ CV_TO_GL
+
+
+def gl_intrinsics(K: np.ndarray, x0: int = 0, y0: int = 0) -> tuple[float, float, float, float]:
+    """``(fx, fy, cx, cy)`` for an OpenGL renderer (pyrender's IntrinsicsCamera) drawing the window whose
+    top-left pixel is ``(x0, y0)`` of the image of intrinsics ``K`` (may be negative or beyond the image).
+
+    The principal point moves to the window and shifts by half a pixel: OpenGL samples pixel ``c`` at
+    ``c + 0.5``, OpenCV's pixel centre is ``c``.
+    """
+    return (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]) - x0 + 0.5, float(K[1, 2]) - y0 + 0.5)
 
 
 def scaled_intrinsics(K: np.ndarray, width: int, height: int, scale: float) -> tuple[np.ndarray, int, int]:
@@ -150,16 +199,8 @@ class Camera:
 
     # --- projection -------------------------------------------------------------------------------
     def project_cam(self, points_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Camera-frame points (N, 3) -> image points ``uv (N, 2)`` float64 and depths ``z (N,)``.
-
-        Points at or behind the camera (``z <= 0``) give non-finite or meaningless ``uv``: check ``z``.
-        """
-        p = np.asarray(points_c, np.float64)
-        z = p[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = self.K[0, 0] * p[:, 0] / z + self.K[0, 2]
-            v = self.K[1, 1] * p[:, 1] / z + self.K[1, 2]
-        return np.stack([u, v], axis=1), z
+        """Camera-frame points (N, 3) -> image points and depths (see :func:`project_points`)."""
+        return project_points(self.K, points_c)
 
     def project(self, points_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World points (N, 3) -> image points ``uv (N, 2)`` and camera depths ``z (N,)`` (see
@@ -167,12 +208,8 @@ class Camera:
         return self.project_cam(self.w2c(points_w))
 
     def unproject(self, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
-        """Image points ``(u, v)`` at camera depths ``z`` (any equal shapes) -> camera-frame points
-        ``(..., 3)`` float64."""
-        z = np.asarray(z, np.float64)
-        x = (np.asarray(u, np.float64) - self.K[0, 2]) / self.K[0, 0] * z
-        y = (np.asarray(v, np.float64) - self.K[1, 2]) / self.K[1, 1] * z
-        return np.stack([x, y, z], axis=-1)
+        """Image points ``(u, v)`` at camera depths ``z`` -> camera-frame points (see :func:`unproject_points`)."""
+        return unproject_points(self.K, u, v, z)
 
     def unproject_depth(self, depth: np.ndarray) -> np.ndarray:
         """A depth map ``(H, W)`` metres -> camera-frame points ``(H, W, 3)`` float64 (0 depth -> origin)."""
@@ -212,18 +249,13 @@ class Camera:
 
     # --- OpenGL -----------------------------------------------------------------------------------
     def gl_pose(self) -> np.ndarray:
-        """(4, 4) float64 camera-to-world with OpenGL camera axes (y up, looking down -z)."""
-        return self.T_c2w @ CV_TO_GL
+        """(4, 4) float64 camera-to-world with OpenGL camera axes (see :func:`gl_camera_pose`)."""
+        return gl_camera_pose(self.T_c2w)
 
     def gl_intrinsics(self, x0: int = 0, y0: int = 0) -> tuple[float, float, float, float]:
-        """``(fx, fy, cx, cy)`` for an OpenGL renderer (pyrender's IntrinsicsCamera) drawing the window
-        whose top-left pixel is ``(x0, y0)`` (may be negative or beyond the image).
-
-        The principal point moves to the window and shifts by half a pixel: OpenGL samples pixel ``c``
-        at ``c + 0.5``, OpenCV's pixel centre is ``c``.
-        """
-        return (float(self.K[0, 0]), float(self.K[1, 1]), float(self.K[0, 2]) - x0 + 0.5,
-                float(self.K[1, 2]) - y0 + 0.5)
+        """``(fx, fy, cx, cy)`` for an OpenGL renderer drawing the window at ``(x0, y0)`` (see
+        :func:`gl_intrinsics`)."""
+        return gl_intrinsics(self.K, x0, y0)
 
 
 @dataclass(frozen=True)

@@ -10,8 +10,8 @@ The platform is OSMesa (software, any machine); with ``PYOPENGL_PLATFORM=egl`` i
 before scansynth starts, :mod:`pipeline.gl` loads pyrender on EGL instead (GPU machines). Nothing
 else changes.
 
-The OpenCV -> OpenGL camera conversion lives in this module only (:func:`gl_camera_pose`,
-:func:`gl_intrinsics`). Pixel ``(row r, column c)`` of a rendered image samples the OpenCV image point
+The OpenCV -> OpenGL camera conversion comes from :mod:`pipeline.camera` (:func:`~pipeline.camera.gl_camera_pose`,
+:func:`~pipeline.camera.gl_intrinsics`). Pixel ``(row r, column c)`` of a rendered image samples the OpenCV image point
 ``u = c, v = r`` (the pixel centre): OpenGL samples at ``c + 0.5``, so the principal point passed to
 GL is shifted by half a pixel.
 
@@ -34,48 +34,10 @@ from typing import Sequence
 
 import numpy as np
 
+from pipeline.camera import gl_camera_pose, gl_intrinsics
 from pipeline.gl import offscreen_renderer, pyrender_module
 
 log = logging.getLogger(__name__)
-
-# OpenCV camera axes (x right, y down, z forward) -> OpenGL camera axes (x right, y up, z backward).
-_CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
-
-
-def gl_camera_pose(T_c2w: np.ndarray) -> np.ndarray:
-    """OpenGL camera-to-world pose of an OpenCV camera-to-world pose.
-
-    Parameters
-    ----------
-    T_c2w : (4, 4) float64
-        Camera-to-world, metres, OpenCV camera axes.
-
-    Returns
-    -------
-    (4, 4) float64
-        Camera-to-world with OpenGL camera axes (y up, looking down -z), as pyrender expects.
-    """
-    return np.asarray(T_c2w, dtype=np.float64) @ _CV_TO_GL
-
-
-def gl_intrinsics(K: np.ndarray, x0: int = 0, y0: int = 0) -> tuple[float, float, float, float]:
-    """``(fx, fy, cx, cy)`` for pyrender's IntrinsicsCamera rendering the window at ``(x0, y0)``.
-
-    Parameters
-    ----------
-    K : (3, 3) float64
-        OpenCV intrinsics, pixels; pixel centres at integer coordinates.
-    x0, y0 : int
-        Top-left pixel of the rendered window in the image's pixel grid (may be negative).
-
-    Returns
-    -------
-    tuple of float
-        The principal point is moved to the window and shifted by half a pixel, because OpenGL samples
-        pixel ``c`` at ``c + 0.5`` while OpenCV's pixel centre is ``c``.
-    """
-    return (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]) - x0 + 0.5, float(K[1, 2]) - y0 + 0.5)
-
 
 class _View:
     """One OffscreenRenderer (GL context) of a fixed viewport size, with its own uploaded meshes.

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.camera import unproject_points
+
 log = logging.getLogger(__name__)
 
 
@@ -78,9 +80,7 @@ def frame_support_points(depth: np.ndarray, K: np.ndarray, T_c2w: np.ndarray, *,
     if len(vs) < 3 or len(us) < 3:
         return np.zeros((0, 3)), np.zeros((0, 3))
     z = depth[np.ix_(vs, us)].astype(np.float64)
-    x = (us[None, :] - K[0, 2]) / K[0, 0] * z
-    y = (vs[:, None] - K[1, 2]) / K[1, 1] * z
-    P = np.stack([x, y, z], -1)                                   # (h, w, 3) camera frame
+    P = unproject_points(K, us[None, :], vs[:, None], z)          # (h, w, 3) camera frame
     valid = (z > 0) & (z < max_depth)
     dx = P[1:-1, 2:] - P[1:-1, :-2]
     dy = P[2:, 1:-1] - P[:-2, 1:-1]

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.camera import image_plane, project_points, transform_points, unproject_points
 from pipeline.errors import InputError
 from pipeline.tolerances import POSE_ORTHONORMAL_TOL
 from pipeline.types import Scan
@@ -362,31 +363,26 @@ def register_depth(depth: np.ndarray, K_d: np.ndarray, K_c: np.ndarray, T_d2c: n
     if np.allclose(T_d2c, np.eye(4), atol=1e-9):
         if hd == height and wd == width and np.allclose(K_d, K_c, atol=1e-9):
             return depth.astype(np.float32, copy=True)
-        u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-        M = K_d @ np.linalg.inv(K_c)
-        ud = M[0, 0] * u + M[0, 1] * v + M[0, 2]
-        vd = M[1, 0] * u + M[1, 1] * v + M[1, 2]
-        ui, vi = np.round(ud).astype(np.int64), np.round(vd).astype(np.int64)
-        ok = (ui >= 0) & (ui < wd) & (vi >= 0) & (vi < hd)
+        x, y = image_plane(K_c, width, height)          # each colour pixel's ray at z = 1 ...
+        ui = np.round(K_d[0, 0] * x + K_d[0, 2]).astype(np.int64)   # ... seen by the depth camera
+        vi = np.round(K_d[1, 1] * y + K_d[1, 2]).astype(np.int64)
+        ok_u, ok_v = (ui >= 0) & (ui < wd), (vi >= 0) & (vi < hd)
         out = np.zeros((height, width), np.float32)
-        out[ok] = depth[vi[ok], ui[ok]]
+        out[np.ix_(ok_v, ok_u)] = depth[np.ix_(vi[ok_v], ui[ok_u])]
         return out
     vv, uu = np.nonzero(depth > 0)
-    z = depth[vv, uu].astype(np.float64)
-    pts = np.linalg.inv(K_d) @ np.stack([uu * z, vv * z, z])
-    pts = T_d2c[:3, :3] @ pts + T_d2c[:3, 3:4]
-    front = pts[2] > 1e-6
-    pts = pts[:, front]
-    proj = K_c @ pts
-    uc, vc = proj[0] / proj[2], proj[1] / proj[2]
-    # footprint: one depth pixel covers about this many colour pixels
+    pts = transform_points(T_d2c, unproject_points(K_d, uu, vv, depth[vv, uu]))
+    pts = pts[pts[:, 2] > 1e-6]
+    uv, z = project_points(K_c, pts)
+    # footprint: one depth pixel covers about this many colour pixels (one: the nearest pixel centre)
     r = max(1, int(np.ceil(max(K_c[0, 0] / K_d[0, 0], K_c[1, 1] / K_d[1, 1]) / 2)))
+    base = np.round(uv) if r == 1 else np.floor(uv)
     out = np.full((height, width), np.inf, np.float32)
-    zc = pts[2].astype(np.float32)
+    zc = z.astype(np.float32)
     for dy in range(-r + 1, r + 1) if r > 1 else (0,):
         for dx in range(-r + 1, r + 1) if r > 1 else (0,):
-            ui = np.floor(uc).astype(np.int64) + dx
-            vi = np.floor(vc).astype(np.int64) + dy
+            ui = base[:, 0].astype(np.int64) + dx
+            vi = base[:, 1].astype(np.int64) + dy
             ok = (ui >= 0) & (ui < width) & (vi >= 0) & (vi < height)
             np.minimum.at(out, (vi[ok], ui[ok]), zc[ok])
     out[~np.isfinite(out)] = 0.0

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.camera import image_plane
 from pipeline.color import linear_to_srgb
 
 # Kinect-like depth sensor (Nguyen, Izadi, Lovell 2012: axial noise of the Kinect v1).
@@ -152,8 +153,8 @@ def depth_normals_cos(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
     """
     z = depth.astype(np.float32)
     h, w = z.shape
-    u = ((np.arange(w, dtype=np.float32) - np.float32(K[0, 2])) / np.float32(K[0, 0]))[None, :]
-    v = ((np.arange(h, dtype=np.float32) - np.float32(K[1, 2])) / np.float32(K[1, 1]))[:, None]
+    u, v = image_plane(K, w, h, np.float32)
+    u, v = u[None, :], v[:, None]
     X, Y = u * z, v * z
     cos = np.ones((h, w), np.float32)
     # d/dx and d/dy of the point (X, Y, Z) on the interior.

@@ -256,21 +256,21 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
                 subs = exposure_path(T, omega, vel, n_sub)
                 img = np.zeros((height, width, 3), np.float32)
                 for S in subs:
-                    img += renderer.render_color(S, cams.K, width, height)
+                    img += renderer.render_color(Camera(cams.K, S, width, height))
                 img /= n_sub
-                depth_c = renderer.render_depth(T, cams.K, width, height)
+                depth_c = renderer.render_depth(Camera(cams.K, T, width, height))
                 strength = _motion_extent(depth_c, cams.K, T, subs[0], subs[-1])
                 blur = {"kind": "motion", "strength_px": round(strength, 4), "sub_frames": n_sub,
                         "omega_rad": omega.tolist(), "velocity_m": vel.tolist()}
             else:
-                img = renderer.render_color(T, cams.K, width, height)
+                img = renderer.render_color(Camera(cams.K, T, width, height))
                 if kind == BLUR_CODES["defocus"]:
                     r = round(float(rng.uniform(2.0, 5.0) * width / 640.0), 4)
                     img = degrade.defocus(img, r)
                     blur = {"kind": "defocus", "strength_px": r, "psf": "disk", "radius_px": r}
             strengths[i] = blur["strength_px"]
             photo = degrade.camera_photo(img, camera, rng)
-            true_depth = renderer.render_depth(T, cams.depth_K, cams.depth_width, cams.depth_height)
+            true_depth = renderer.render_depth(Camera(cams.depth_K, T, cams.depth_width, cams.depth_height))
             depth_mm = degrade.degrade_depth(true_depth, cams.depth_K, rng)
             files += write_frame(out, layout, i, photo, depth_mm, poses[i], bool(pose_valid[i]))
             gt_rel = f"{GT_DIR}/depth/frame-{i:06d}.png"

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
+from pipeline.camera import Camera
 from pipeline.errors import UserError
 from pipeline.gl import offscreen_renderer, pyrender_module
 from pipeline.synthscan.room import MeshData, Room
@@ -40,18 +41,17 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 PHOTO_MODES = ("raster", "traced")
+ZNEAR, ZFAR = 0.02, 50.0   # metres: clip planes of the scan's photos and depth maps
 
-# OpenCV camera axes (x right, y down, z forward) -> OpenGL camera axes (x right, y up, z backward).
-CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 class PhotoRenderer(Protocol):
     """What every photo mode provides."""
 
-    def render_color(self, T_c2w: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
+    def render_color(self, cam: Camera) -> np.ndarray:
         """Linear RGB (height, width, 3) float32 in exposure units (may exceed 1 at emitters)."""
 
-    def render_depth(self, T_c2w: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
+    def render_depth(self, cam: Camera) -> np.ndarray:
         """Z-depth (height, width) float32 metres along the optical axis; 0 where nothing was hit."""
 
     def close(self) -> None:
@@ -72,11 +72,15 @@ class RasterPhotoRenderer:
     def __init__(self, room: Room, mesh: MeshData, vertex_radiance: np.ndarray) -> None:
 
 
+        from pipeline.render_gl import MeshRasterizer
+
         self._pr = pyrender_module()
         self._room, self._mesh, self._radiance = room, mesh, vertex_radiance
         # OSMesa cannot resize a context and a pyrender mesh binds to one context, so each image size
-        # gets its own renderer and scene: (renderer, scene, colour meshes or None, depth mesh, camera node)
+        # gets its own renderer and scene: (renderer, scene, camera node or None)
         self._views: dict[tuple[int, int], list] = {}
+        self._depth = MeshRasterizer(znear=ZNEAR, zfar=ZFAR)   # the pipeline's rasterizer draws the depth
+        self._depth.add_mesh("room", mesh.vertices, mesh.faces)
 
     def _colour_meshes(self) -> list:
         pr, room, mesh = self._pr, self._room, self._mesh
@@ -101,50 +105,33 @@ class RasterPhotoRenderer:
             out.append(pr.Mesh([prim]))
         return out
 
-    def _view(self, T_c2w: np.ndarray, K: np.ndarray, width: int, height: int, colour: bool):
+    def render_color(self, cam: Camera) -> np.ndarray:
         pr = self._pr
-        key = (int(width), int(height))
-        if key not in self._views:
+        view = self._views.get(cam.shape)
+        if view is None:
             scene = pr.Scene(ambient_light=np.ones(3), bg_color=np.zeros(4))
-            prim = pr.Primitive(positions=self._mesh.vertices.astype(np.float32),
-                                indices=self._mesh.faces.astype(np.uint32), mode=4)
-            depth_mesh = pr.Mesh([prim])
-            scene.add(depth_mesh)
-            renderer = offscreen_renderer(width, height)
-            self._views[key] = [renderer, scene, None, depth_mesh, None]
-        view = self._views[key]
-        renderer, scene, meshes, depth_mesh, cam_node = view
-        if colour and meshes is None:
-            meshes = view[2] = self._colour_meshes()
-            for m in meshes:
+            for m in self._colour_meshes():
                 scene.add(m)
-        for m in meshes or ():
-            m.is_visible = colour
-        depth_mesh.is_visible = not colour
-        # pyrender puts pixel centres at half-integers; OpenCV K puts them at integers.
-        cam = pr.IntrinsicsCamera(fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]) + 0.5,
-                                  cy=float(K[1, 2]) + 0.5, znear=0.02, zfar=50.0)
+            view = self._views[cam.shape] = [offscreen_renderer(cam.width, cam.height), scene, None]
+        renderer, scene, cam_node = view
+        fx, fy, cx, cy = cam.gl_intrinsics()
         if cam_node is not None:
             scene.remove_node(cam_node)
-        view[4] = scene.add(cam, pose=T_c2w @ CV_TO_GL)
-        return renderer, scene
-
-    def render_color(self, T_c2w: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
-        r, scene = self._view(T_c2w, K, width, height, colour=True)
-        color, _ = r.render(scene, flags=self._pr.RenderFlags.FLAT)
+        view[2] = scene.add(pr.IntrinsicsCamera(fx=fx, fy=fy, cx=cx, cy=cy, znear=ZNEAR, zfar=ZFAR),
+                            pose=cam.gl_pose())
+        color, _ = renderer.render(scene, flags=pr.RenderFlags.FLAT)
         # The flat shader writes clamp(texture_sRGB * vertex_colour), and the vertex colours hold the
         # light map raised to 1/2.2: the product is the gamma-2.2 encoded photo. Undo it: linear units.
         return np.power(color.astype(np.float32) / 255.0, 2.2)
 
-    def render_depth(self, T_c2w: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
-        r, scene = self._view(T_c2w, K, width, height, colour=False)
-        depth = r.render(scene, flags=self._pr.RenderFlags.DEPTH_ONLY)
-        return np.asarray(depth, np.float32)
+    def render_depth(self, cam: Camera) -> np.ndarray:
+        return self._depth.render_depth(cam.K, cam.T_c2w, cam.width, cam.height, [("room", np.eye(4))])
 
     def close(self) -> None:
         for view in self._views.values():
             view[0].delete()
         self._views.clear()
+        self._depth.release()
 
 
 TRACED_SPP = 16           # samples per pixel of traced photos (make_scan); sensor noise is added after
@@ -283,13 +270,6 @@ def _denoise(ff, method: str) -> np.ndarray:
     return np.maximum(denoise(ff.radiance, ff.albedo, n, mask, method=method), 0.0).astype(np.float32)
 
 
-def _camera(T_c2w: np.ndarray, K: np.ndarray, width: int, height: int):
-    from pipeline.trace.pbr import Camera
-
-    return Camera(K=np.asarray(K, np.float64), T_c2w=np.asarray(T_c2w, np.float64), width=int(width),
-                  height=int(height))
-
-
 class TracedPhotoRenderer:
     """Path-traced photos of the true room (global illumination, soft shadows); depth by the raster.
 
@@ -324,24 +304,26 @@ class TracedPhotoRenderer:
         if denoise not in DENOISE_CHOICES:
             raise UserError(f"traced photos: denoise {denoise!r}; choose one of {', '.join(DENOISE_CHOICES)}")
         self._denoise = denoise
-        self._depth = RasterPhotoRenderer(room, mesh, vertex_radiance)
+        from pipeline.render_gl import MeshRasterizer
+
+        self._depth = MeshRasterizer(znear=ZNEAR, zfar=ZFAR)
+        self._depth.add_mesh("room", mesh.vertices, mesh.faces)
 
     @property
     def exposure(self) -> float:
         return self._exposure
 
-    def render_color(self, T_c2w: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
+    def render_color(self, cam: Camera) -> np.ndarray:
         from pipeline.trace.fullframe import render_full_frame
 
-        rng = _view_rng(self._seed, T_c2w, K, width, height)
-        ff = render_full_frame(self._scene, _camera(T_c2w, K, width, height), self._settings, rng)
-        return _denoise(ff, self._denoise)
+        rng = _view_rng(self._seed, cam.T_c2w, cam.K, cam.width, cam.height)
+        return _denoise(render_full_frame(self._scene, cam, self._settings, rng), self._denoise)
 
-    def render_depth(self, T_c2w: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
-        return self._depth.render_depth(T_c2w, K, width, height)
+    def render_depth(self, cam: Camera) -> np.ndarray:
+        return self._depth.render_depth(cam.K, cam.T_c2w, cam.width, cam.height, [("room", np.eye(4))])
 
     def close(self) -> None:
-        self._depth.close()
+        self._depth.release()
 
 
 @dataclass(frozen=True)
@@ -427,7 +409,7 @@ def render_traced_view(room: Room, T_c2w: np.ndarray, K: np.ndarray, width: int,
         if T_world_from_canonical is not None:
             T = np.linalg.inv(np.asarray(T_world_from_canonical, np.float64)) @ T
     settings = FullFrameSettings(spp=int(spp), max_depth=int(max_depth))
-    ff = render_full_frame(scene, _camera(T, K, width, height), settings, _view_rng(seed, T, K, width, height),
+    ff = render_full_frame(scene, Camera(K, T, width, height), settings, _view_rng(seed, T, K, width, height),
                            cover_from=len(room.materials))
     return TracedView(radiance=_denoise(ff, denoise), object_coverage=ff.coverage, albedo=ff.albedo,
                       rays=ff.rays)

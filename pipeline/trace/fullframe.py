@@ -21,11 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.camera import Camera
 from pipeline.tolerances import TRACE_RAY_EPS_M
 from pipeline.trace import bsdf
 from pipeline.trace.intersect import Hits, offset_origins
-from pipeline.trace.pbr import (Camera, Surface, add_rows, area_light_nee, emission_at, emission_mis_weight,
-                                interact, material, primary_rays, sample_continuation)
+from pipeline.trace.pbr import (Surface, add_rows, area_light_nee, emission_at, emission_mis_weight, interact,
+                                material, sample_continuation)
 from pipeline.trace.sampling import frame_to_local, local_frame
 from pipeline.trace.scene import TraceScene
 
@@ -100,7 +101,7 @@ def _trace_chunk(scene: TraceScene, camera: Camera, pixels: np.ndarray, settings
     n = pixels.shape[0]
     eps = settings.ray_eps
     L = np.zeros((n, 3))
-    o, d = primary_rays(camera, pixels, rng.random((n, 2), dtype=np.float32))
+    o, d = camera.rays(pixels, rng.random((n, 2), dtype=np.float32))
     h = scene.intersector.intersect(o, d)
     rays[0] += n
     hit = h.hit

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.camera import Camera
 from pipeline.color import LUMINANCE
 from pipeline.tolerances import TRACE_RAY_EPS_M
 from pipeline.trace import bsdf
@@ -31,16 +32,6 @@ from pipeline.trace.sampling import (cosine_hemisphere, frame_to_local, frame_to
 from pipeline.trace.scene import TraceScene
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class Camera:
-    """A pinhole camera, OpenCV axes (x right, y down, z forward); pixel centres at integers."""
-
-    K: np.ndarray       # (3, 3) float64 intrinsics, pixels
-    T_c2w: np.ndarray   # (4, 4) float64 camera-to-world, metres
-    width: int
-    height: int
 
 
 @dataclass(frozen=True)
@@ -143,22 +134,6 @@ def material(scene: TraceScene, s: Surface) -> bsdf.Material:
 
 def take(s: Surface, idx: np.ndarray) -> Surface:
     return Surface(*(getattr(s, k)[idx] for k in ("p", "ng", "ns", "inst", "prim", "albedo")))
-
-
-def primary_rays(camera: Camera, pixels: np.ndarray, jitter: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World-space rays through flat pixel indices ``pixels (R,)`` at offsets ``jitter (R, 2)`` in [0, 1).
-
-    The ray goes through image point ``(x + jx - 0.5, y + jy - 0.5)``: pixel ``(x, y)`` covers the unit
-    square centred on its integer coordinates (OpenCV convention).
-    """
-    K = camera.K
-    jit = np.asarray(jitter, np.float32)
-    x = (pixels % camera.width).astype(np.float32) + (jit[:, 0] - np.float32(0.5 + K[0, 2]))
-    y = (pixels // camera.width).astype(np.float32) + (jit[:, 1] - np.float32(0.5 + K[1, 2]))
-    d = np.stack([x / np.float32(K[0, 0]), y / np.float32(K[1, 1]), np.ones_like(x)], axis=1)
-    d = _unit(d) @ camera.T_c2w[:3, :3].T.astype(np.float32)
-    o = np.broadcast_to(camera.T_c2w[:3, 3].astype(np.float32), d.shape)
-    return np.ascontiguousarray(o), d
 
 
 class _Counter:
@@ -305,7 +280,7 @@ def trace_samples(scene: TraceScene, camera: Camera, pixels: np.ndarray, setting
     counter = counter or _Counter()
     n = pixels.shape[0]
     eps = settings.ray_eps
-    o, d = primary_rays(camera, pixels, rng.random((n, 2), dtype=np.float32))
+    o, d = camera.rays(pixels, rng.random((n, 2), dtype=np.float32))
     hits = scene.intersector.intersect(o, d)
     counter.rays += n
     inst = np.where(hits.hit, scene.tri_inst[np.maximum(hits.prim, 0)], -1)

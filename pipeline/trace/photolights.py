@@ -73,7 +73,7 @@ def photo_lights(vertices: np.ndarray, faces: np.ndarray, intersector, frames, *
     -------
     PhotoLights
     """
-    from pipeline.trace.pbr import Camera, primary_rays
+    from pipeline.camera import Camera
 
     nv, nt = len(vertices), len(faces)
     f = np.asarray(faces, np.int64)
@@ -90,7 +90,7 @@ def photo_lights(vertices: np.ndarray, faces: np.ndarray, intersector, frames, *
         ys, xs = np.mgrid[stride // 2:h:stride, stride // 2:w:stride]
         pix = (ys * w + xs).ravel()
         cam = Camera(K=np.asarray(K, np.float64), T_c2w=np.asarray(T, np.float64), width=w, height=h)
-        o, d = primary_rays(cam, pix, np.full((pix.size, 2), 0.5, np.float32))
+        o, d = cam.rays(pix, np.full((pix.size, 2), 0.5, np.float32))
         hits = intersector.intersect(o, d)
         col = photo.reshape(-1, 3)[pix]
         clip = col.min(axis=1) >= threshold
@@ -290,7 +290,6 @@ def frame_exposure(scene, cam, photo: np.ndarray, *, radiance_scale: float = 1.0
     -------
     float in :data:`EXPOSURE_RANGE`; 1.0 when fewer than :data:`MIN_EXPOSURE_SAMPLES` pixels qualify
     """
-    from pipeline.trace.pbr import primary_rays
 
     photo = np.asarray(photo, np.uint8)
     h, w = photo.shape[:2]
@@ -299,7 +298,7 @@ def frame_exposure(scene, cam, photo: np.ndarray, *, radiance_scale: float = 1.0
     stride = max(1, round(w / grid))
     ys, xs = np.mgrid[stride // 2:h:stride, stride // 2:w:stride]
     pix = (ys * w + xs).ravel()
-    o, d = primary_rays(cam, pix, np.full((pix.size, 2), 0.5, np.float32))
+    o, d = cam.rays(pix, np.full((pix.size, 2), 0.5, np.float32))
     hits = scene.intersector.intersect(o, d)
     prim = np.maximum(hits.prim, 0)
     room = hits.hit & (scene.tri_inst[prim] == 0) & (scene.area_lights.prob_of_tri[prim] == 0)

@@ -25,7 +25,7 @@ import numpy as np
 
 from pipeline.color import LUMINANCE_F64
 from pipeline.trace.intersect import EmbreeIntersector, Intersector, offset_origins
-from pipeline.trace.pbr import Camera, primary_rays
+from pipeline.camera import Camera
 from pipeline.trace.sampling import cosine_hemisphere, to_world
 from pipeline.trace.scene import TraceScene
 
@@ -93,7 +93,7 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
     grid = np.zeros((H, W), bool)
     grid[::stride, ::stride] = True
     pix = np.flatnonzero((np.asarray(labels) == 0).ravel() & grid.ravel())
-    o, d = primary_rays(camera, pix, np.full((pix.size, 2), 0.5))
+    o, d = camera.rays(pix, np.full((pix.size, 2), 0.5))
     h = scene.intersector.intersect(o, d)
     room_hit = h.hit & (scene.tri_inst[np.maximum(h.prim, 0)] == 0)
     pix, d, h_t = pix[room_hit], d[room_hit], h.t[room_hit]

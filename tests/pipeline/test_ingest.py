@@ -12,7 +12,8 @@ import pytest
 from pipeline import ingest, runfolder
 from pipeline.config import build_config
 from pipeline.errors import InputError, UserError
-from pipeline.reconstruct import drop_small_components, floor_up, fuse_tsdf, render_depth
+from bench.reference import raycast
+from pipeline.reconstruct import drop_small_components, floor_up, fuse_tsdf
 from pipeline.runner import StageContext
 from pipeline.scanformats.common import read_color, read_depth
 from pipeline.scanformats.detect import read_scan
@@ -146,7 +147,7 @@ def test_tsdf_reconstructs_the_room_walls(tmp_path):
     assert C.dtype == np.uint8 and C.shape == V.shape
     # rendered depth of the reconstruction matches the exact depth
     d_true = read_depth(s, 3)
-    d = render_depth(V, F, s.K[3], s.T_c2w[3], s.width, s.height)
+    d = raycast([(V, F)], s.K[3], s.T_c2w[3], s.width, s.height)[0]
     ok = (d > 0) & (d_true > 0)
     assert ok.mean() > 0.9 and np.median(np.abs(d - d_true)[ok]) < 0.01
 
@@ -283,7 +284,7 @@ def test_real_sevenscenes_ingest_subset(shared_data, tmp_path):
     errs = []
     for i in (0, 12, 24):
         d_real = read_depth(s, i)
-        d = render_depth(V, F, s.K[i], s.T_c2w[i], s.width, s.height)
+        d = raycast([(V, F)], s.K[i], s.T_c2w[i], s.width, s.height)[0]
         ok = (d > 0) & (d_real > 0)
         errs.append(np.abs(d - d_real)[ok])
     assert np.median(np.concatenate(errs)) < 0.03

@@ -420,6 +420,7 @@ def test_cli_make_scan_and_contact_sheet(tmp_path, capsys):
 def test_depth_render_matches_analytic_plane():
     """A tilted view of the floor: rendered depth equals the ray-plane intersection at pixel centres."""
     from pipeline.seeding import item_rng
+    from pipeline.camera import Camera
     from pipeline.synthscan.render import RasterPhotoRenderer
     from pipeline.synthscan.room import make_room, tessellate
     from pipeline.synthscan.trajectory import look_at
@@ -432,7 +433,7 @@ def test_depth_render_matches_analytic_plane():
         eye = np.array([1.5, 1.2, 1.4])
         T = look_at(eye, np.array([2.5, 2.0, 0.0]), roll=0.2)
         K = np.array([[100.0, 0, 40.3], [0, 110.0, 29.7], [0, 0, 1]])
-        d = r.render_depth(T, K, 80, 60).astype(np.float64)
+        d = r.render_depth(Camera(K, T, 80, 60)).astype(np.float64)
     finally:
         r.close()
     v, u = np.mgrid[0:60, 0:80]

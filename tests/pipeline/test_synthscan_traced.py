@@ -75,14 +75,14 @@ def test_soft_shadow_under_the_table(room):
 def test_brighter_where_the_lights_shine(room):
     """Pixels whose points get the most direct light (analytic, Lambert's polygon formula) are brighter."""
     from pipeline.synthscan.lighting import direct_irradiance
-    from pipeline.trace.pbr import Camera, primary_rays
+    from pipeline.camera import Camera
 
     T = look_at(np.array([0.8, 0.8, 1.5]), np.array([room.size[0] - 0.5, room.size[1] - 0.5, 1.0]))
     K = np.array([[40.0, 0.0, 31.5], [0.0, 40.0, 23.5], [0.0, 0.0, 1.0]])
     v = render_traced_view(room, T, K, 64, 48, exposure=1.0, spp=16, seed=2)
     scene = room_trace_scene(room, 1.0)
     pix = np.arange(64 * 48)
-    o, dirs = primary_rays(Camera(K, T, 64, 48), pix, np.full((pix.size, 2), 0.5, np.float32))
+    o, dirs = Camera(K, T, 64, 48).rays(pix, np.full((pix.size, 2), 0.5, np.float32))
     hits = scene.intersector.intersect(o, dirs)
     ok = hits.hit & ~scene.tri_emits[np.maximum(hits.prim, 0)]
     p = (o + hits.t[:, None] * dirs)[ok].astype(np.float64)

@@ -16,7 +16,8 @@ from pipeline.trace import bsdf
 from pipeline.trace.intersect import EmbreeIntersector, NumPySlowIntersector
 from pipeline.color import srgb_to_linear
 from pipeline.trace.lights import AreaLights, published_lights
-from pipeline.trace.pbr import Camera, RenderSettings, ambient_occlusion, render, trace_mask
+from pipeline.camera import Camera
+from pipeline.trace.pbr import RenderSettings, ambient_occlusion, render, trace_mask
 from pipeline.trace.sampling import ggx_reflect_pdf, ggx_sample_vndf, reflect
 from pipeline.trace.scene import ObjectInstance, build_scene
 from tests.pipeline.shapes import box_room, grid_quad, look_at, quad, uv_sphere
@@ -411,10 +412,9 @@ def _open_room():
 
 def _photo_of(room_scene, cam, lamp, miss_value):
     """What a camera sees: 255 on ``lamp(points)``, 128 elsewhere on the room, ``miss_value`` where rays escape."""
-    from pipeline.trace.pbr import primary_rays
 
     n = cam.width * cam.height
-    o, d = primary_rays(cam, np.arange(n), np.full((n, 2), 0.5))
+    o, d = cam.rays(np.arange(n), np.full((n, 2), 0.5))
     h = room_scene.intersector.intersect(o, d)
     p = o + np.where(h.hit, h.t, 0)[:, None] * d
     val = np.where(h.hit, np.where(lamp(p), 255, 128), miss_value).astype(np.uint8)

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from pipeline.tolerances import TRACE_MITSUBA_REL_BIAS_MAX, TRACE_MITSUBA_REL_RMSE_MAX
-from pipeline.trace.pbr import Camera, RenderSettings, render
+from pipeline.camera import Camera
+from pipeline.trace.pbr import RenderSettings, render
 from pipeline.trace.scene import ObjectInstance, build_scene
 from tests.pipeline.shapes import grid_quad, look_at, uv_sphere
 

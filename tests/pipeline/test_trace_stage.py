@@ -17,7 +17,7 @@ from pipeline.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, 
 from pipeline.runfolder import TRACE_TPATH, FrameKey
 from pipeline.runner import StageContext
 from pipeline.trace.denoise import denoise, denoise_ao, joint_bilateral, oidn_available
-from pipeline.trace.pbr import Camera
+from pipeline.camera import Camera
 from pipeline.trace.scene import ObjectInstance, build_scene
 from pipeline.trace.shadow import shadow_ratio
 from pipeline.types import ObjectModel, Scan
@@ -159,7 +159,6 @@ def _make_run(run: Path, *, obj_id_in_frame: int = 1, photo_level: int | None = 
     from pipeline.runfolder import save_scan
     from pipeline.objects import save_library
     from pipeline.scanformats.mesh import ply_bytes
-    from pipeline.trace.pbr import primary_rays
 
     scene_dir = run / "ingest" / "room"
     rv, rf = box_room((-2, -2, 0), (2, 2, 2.5), n=6)
@@ -189,7 +188,7 @@ def _make_run(run: Path, *, obj_id_in_frame: int = 1, photo_level: int | None = 
     ob = ObjectInstance(vertices=v + t_m2w, faces=f, normals=n, albedo=np.ones((len(v), 3), np.float32))
     sc = build_scene(rv, rf, None, [ob])
     cam = Camera(K=K, T_c2w=T, width=W, height=H)
-    o, d = primary_rays(cam, np.arange(W * H), np.full((W * H, 2), 0.5))
+    o, d = cam.rays(np.arange(W * H), np.full((W * H, 2), 0.5))
     h = sc.intersector.intersect(o, d)
     labels = np.where(h.hit, sc.tri_inst[np.maximum(h.prim, 0)], 0).astype(np.uint16).reshape(H, W)
     T_w2c = np.linalg.inv(T)
