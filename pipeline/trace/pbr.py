@@ -1,4 +1,5 @@
-"""Wavefront path integrator for object pixels: primary rays, AO, PBR with NEE + MIS, adaptive spp.
+"""The wavefront path integrator (:func:`trace_paths`, used by this module's object tracer and by
+:mod:`pipeline.trace.fullframe`), and the object tracer: primary rays, AO, PBR with NEE + MIS, adaptive spp.
 
 Every step works on a batch of rays (structure of arrays) that carry the index of the pixel sample
 they belong to (pbrt-v4's wavefront design, ``pixelIndex``); there is no Python loop over rays.
@@ -136,16 +137,86 @@ def take(s: Surface, idx: np.ndarray) -> Surface:
     return Surface(*(getattr(s, k)[idx] for k in ("p", "ng", "ns", "inst", "prim", "albedo")))
 
 
-class _Counter:
-    """Counts rays cast (for reports and the benchmark); a local object, not module state."""
+class RayCounter:
+    """Counts rays cast (for reports and the benchmark); a local object, not module state.
+
+    Every ray that is traced counts once: camera rays, continuation rays, shadow rays towards area and
+    point lights, AO rays (both renderers count the same way)."""
 
     def __init__(self) -> None:
         self.rays = 0
 
 
-def _scatter(scene: TraceScene, s: Surface, wo: np.ndarray, beta: np.ndarray, rng: np.random.Generator,
-             eps: float, counter: _Counter) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Next-event estimation at surfaces ``s`` and a BSDF-sampled continuation.
+class PathDraws:
+    """Random numbers drawn per live path, when and as many as needed (the object tracer)."""
+
+    correlated = False
+
+    def __init__(self, rng: np.random.Generator) -> None:
+        self.rng = rng
+
+    def begin(self, n: int) -> None:
+        """Start of a bounce of ``n`` samples (nothing is drawn ahead)."""
+
+    def nee(self, idx: np.ndarray) -> np.ndarray:
+        return self.rng.random((3, idx.size))
+
+    def bsdf(self, idx: np.ndarray) -> np.ndarray:
+        return self.rng.random((3, idx.size), dtype=np.float32)
+
+    def rr(self, idx: np.ndarray) -> np.ndarray:
+        return self.rng.random(idx.size, dtype=np.float32)
+
+
+class ChunkDraws(PathDraws):
+    """Every uniform of a bounce drawn for the whole chunk and indexed by sample, whatever happens to the
+    other samples: a path that meets none of a scene's changes keeps its exact value when objects are
+    inserted (correlated sampling, the full-frame renderer)."""
+
+    correlated = True
+
+    def begin(self, n: int) -> None:
+        self.U = self.rng.random((7, n), dtype=np.float32)
+
+    def nee(self, idx: np.ndarray) -> np.ndarray:
+        return self.U[0:3, idx]
+
+    def bsdf(self, idx: np.ndarray) -> np.ndarray:
+        return self.U[3:6, idx]
+
+    def rr(self, idx: np.ndarray) -> np.ndarray:
+        return self.U[6, idx]
+
+
+@dataclass(frozen=True)
+class PathOptions:
+    """What differs between the object tracer and the full-frame renderer (see :func:`trace_paths`)."""
+
+    max_depth: int
+    rr_depth: int
+    ray_eps: float = TRACE_RAY_EPS_M
+    objects_only: bool = True     # paths start only where an object (tri_inst >= 1) is hit first
+    one_sided: bool = False       # emitters light their front side only (else both sides)
+    trace_last: bool = True       # the last scattering event's continuation is traced (emitters it hits count)
+    ao_samples: int = 0           # AO rays per first hit
+    ao_distance: float = 0.3      # metres
+    cover_from: int = 1           # ``covered``: the first hit's tri_inst is at least this
+
+
+def _emission(scene: TraceScene, prim: np.ndarray, u: np.ndarray, v: np.ndarray, dirs: np.ndarray,
+              one_sided: bool) -> np.ndarray:
+    """(R, 3) float32 emitted radiance towards rays ``dirs`` that hit ``prim``; 0 from an emitter's back
+    side when ``one_sided``."""
+    Le = emission_at(scene, prim, u, v)
+    if not one_sided:
+        return Le
+    front = _dot(scene.tri_normal[prim], dirs) < 0
+    return np.where(front[:, None], Le, np.float32(0)).astype(np.float32)
+
+
+def _scatter(scene: TraceScene, s: Surface, wo: np.ndarray, beta: np.ndarray, draws: PathDraws, idx: np.ndarray,
+             opts: PathOptions, counter: RayCounter) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Next-event estimation at surfaces ``s`` (the samples ``idx``) and a BSDF-sampled continuation.
 
     Returns
     -------
@@ -155,14 +226,15 @@ def _scatter(scene: TraceScene, s: Surface, wo: np.ndarray, beta: np.ndarray, rn
     pdf : (R,) solid-angle pdf of ``wi`` (for MIS on emitters hit next)
     """
     n = s.p.shape[0]
+    eps = opts.ray_eps
     frame = local_frame(s.ns)
     wo_l = frame_to_local(wo, frame)
     lobes = bsdf.prepare(material(scene, s), wo_l[:, 2])
     L = np.zeros((n, 3), np.float32)
-    al = scene.area_lights
-    if al.count and n:
-        u = rng.random((3, n))
-        Ld, rays = area_light_nee(scene, s, lobes, wo_l, frame, beta, u[0], u[1], u[2], eps, one_sided=False)
+    if scene.area_lights.count and n:
+        u = draws.nee(idx)
+        Ld, rays = area_light_nee(scene, s, lobes, wo_l, frame, beta, u[0].astype(np.float64),
+                                  u[1].astype(np.float64), u[2].astype(np.float64), eps, one_sided=opts.one_sided)
         L += Ld
         counter.rays += rays
     pl = scene.point_lights
@@ -171,14 +243,14 @@ def _scatter(scene: TraceScene, s: Surface, wo: np.ndarray, beta: np.ndarray, rn
         dist = np.linalg.norm(dvec, axis=1)
         wl = dvec / np.maximum(dist, 1e-12)[:, None]
         fc, _ = bsdf.eval_pdf(lobes, wo_l, frame_to_local(wl, frame))
-        idx = np.flatnonzero((_dot(wl, s.ng) > 0) & (fc.max(axis=1) > 0))
-        if idx.size:
-            org = offset_origins(s.p[idx], s.ng[idx], wl[idx], eps)
-            occ = scene.intersector.occluded(org, wl[idx], dist[idx] - 2 * eps)
-            counter.rays += idx.size
-            vis = idx[~occ]
+        vi = np.flatnonzero((_dot(wl, s.ng) > 0) & (fc.max(axis=1) > 0))
+        if vi.size:
+            org = offset_origins(s.p[vi], s.ng[vi], wl[vi], eps)
+            occ = scene.intersector.occluded(org, wl[vi], dist[vi] - 2 * eps)
+            counter.rays += vi.size
+            vis = vi[~occ]
             L[vis] += beta[vis] * fc[vis] * (pl.intensity[k].astype(np.float32) / (dist[vis] ** 2)[:, None])
-    u = rng.random((3, n), dtype=np.float32)
+    u = draws.bsdf(idx)
     wi, weight, pdf = sample_continuation(lobes, wo_l, frame, s.ng, u[0], u[1], u[2])
     return L, wi, weight, pdf
 
@@ -269,72 +341,83 @@ def sample_continuation(lobes, wo_l: np.ndarray, frame, ng: np.ndarray, u0: np.n
     return wi.astype(np.float32), weight, pdf
 
 
-def trace_samples(scene: TraceScene, camera: Camera, pixels: np.ndarray, settings: RenderSettings,
-                  rng: np.random.Generator, counter: _Counter | None = None) -> dict[str, np.ndarray]:
-    """Trace one camera sample per entry of ``pixels (R,)`` (flat pixel indices; repeats allowed).
+def trace_paths(scene: TraceScene, camera: Camera, pixels: np.ndarray, draws: PathDraws, opts: PathOptions,
+                counter: RayCounter) -> dict[str, np.ndarray]:
+    """Trace one camera sample per entry of ``pixels (R,)`` (flat pixel indices; repeats allowed): the one
+    bounce loop of both renderers (pbrt-v4's wavefront stages: camera rays, intersect, escaped rays,
+    emitters hit, NEE shadow rays and BSDF continuation, Russian roulette).
 
-    Returns a dict of per-sample arrays: ``L (R, 3)`` radiance (0 unless an object was hit first),
-    ``covered (R,)`` bool, ``ao (R,)`` (1 where not covered), ``albedo (R, 3)``, ``normal (R, 3)``
-    (world frame).
+    Returns a dict of per-sample arrays: ``L (R, 3)`` float64 radiance, ``covered (R,)`` bool (first hit
+    has ``tri_inst >= opts.cover_from``), ``ao (R,)`` (1 where no AO was traced), ``albedo (R, 3)`` and
+    ``normal (R, 3)`` (world frame) of the first scattering hit (0 elsewhere).
     """
-    counter = counter or _Counter()
     n = pixels.shape[0]
-    eps = settings.ray_eps
-    o, d = camera.rays(pixels, rng.random((n, 2), dtype=np.float32))
-    hits = scene.intersector.intersect(o, d)
+    eps = opts.ray_eps
+    o, d = camera.rays(pixels, draws.rng.random((n, 2), dtype=np.float32))
+    h = scene.intersector.intersect(o, d)
     counter.rays += n
-    inst = np.where(hits.hit, scene.tri_inst[np.maximum(hits.prim, 0)], -1)
-    covered = inst >= 1
+    covered = np.zeros(n, bool)
+    covered[h.hit] = scene.tri_inst[h.prim[h.hit]] >= opts.cover_from
     out = {"L": np.zeros((n, 3)), "covered": covered, "ao": np.ones(n),
            "albedo": np.zeros((n, 3), np.float32), "normal": np.zeros((n, 3), np.float32)}
-    idx = np.flatnonzero(covered)
+    L = out["L"]
+    if opts.objects_only:
+        idx = np.flatnonzero(covered)
+    else:
+        miss = np.flatnonzero(~h.hit)
+        if miss.size:
+            add_rows(L, miss, scene.escape_radiance(d[miss]))
+        idx = np.flatnonzero(h.hit)
+        if idx.size:
+            em = idx[scene.tri_emits[h.prim[idx]]]
+            if em.size:
+                add_rows(L, em, _emission(scene, h.prim[em], h.u[em], h.v[em], d[em], opts.one_sided))
+            idx = idx[scene.tri_scatters[h.prim[idx]]]
     if idx.size == 0:
         return out
-    hsub = Hits(t=hits.t[idx], prim=hits.prim[idx], u=hits.u[idx], v=hits.v[idx])
-    s = interact(scene, hsub, d[idx])
+    s = interact(scene, Hits(t=h.t[idx], prim=h.prim[idx], u=h.u[idx], v=h.v[idx]), d[idx])
     out["albedo"][idx] = s.albedo
     out["normal"][idx] = s.ns
-    if settings.ao_samples > 0:
-        out["ao"][idx] = ambient_occlusion(scene.intersector, s.p, s.ng, s.ns, rng, samples=settings.ao_samples,
-                                           max_distance=settings.ao_distance, eps=eps, counter=counter)
-    L = out["L"]
+    if opts.ao_samples > 0:
+        out["ao"][idx] = ambient_occlusion(scene.intersector, s.p, s.ng, s.ns, draws.rng, samples=opts.ao_samples,
+                                           max_distance=opts.ao_distance, eps=eps, counter=counter)
     beta = np.ones((idx.size, 3), np.float32)
     wo = -d[idx]
-    for depth in range(settings.max_depth):
-        Ld, wi, weight, pdf = _scatter(scene, s, wo, beta, rng, eps, counter)
+    for depth in range(opts.max_depth):
+        draws.begin(n)
+        if idx.size == 0:
+            if draws.correlated:
+                continue   # keep drawing: the stream position must not depend on the scene
+            break
+        Ld, wi, weight, pdf = _scatter(scene, s, wo, beta, draws, idx, opts, counter)
         add_rows(L, idx, Ld)
+        if not opts.trace_last and depth + 1 >= opts.max_depth:
+            continue
         beta = beta * weight
         alive = beta.max(axis=1) > 0
-        if depth + 1 >= settings.rr_depth:
+        if depth + 1 >= opts.rr_depth:
             q = np.clip(beta.max(axis=1), np.float32(0.05), np.float32(1.0))
-            alive &= rng.random(idx.size, dtype=np.float32) < q
+            alive &= draws.rr(idx) < q
             beta = beta / q[:, None]
         k = np.flatnonzero(alive)
-        if k.size == 0:
-            break
-        idx, beta, pdf = idx[k], beta[k], pdf[k]
-        wi = wi[k]
+        idx, beta, pdf, wi = idx[k], beta[k], pdf[k], wi[k]
         org = offset_origins(s.p[k], s.ng[k], wi, eps)
         h = scene.intersector.intersect(org, wi)
         counter.rays += k.size
-        miss = ~h.hit
-        if miss.any():
-            add_rows(L, idx[miss], beta[miss] * scene.escape_radiance(wi[miss]))
+        m = np.flatnonzero(~h.hit)
+        if m.size:
+            add_rows(L, idx[m], beta[m] * scene.escape_radiance(wi[m]))
         hk = np.flatnonzero(h.hit)
-        if hk.size == 0:
-            break
         prim = h.prim[hk]
         em = hk[scene.tri_emits[prim]]
         if em.size:
             pe = h.prim[em]
-            Le = emission_at(scene, pe, h.u[em], h.v[em])
+            Le = _emission(scene, pe, h.u[em], h.v[em], wi[em], opts.one_sided)
             w = emission_mis_weight(scene, pe, h.t[em], wi[em], pdf[em])
             add_rows(L, idx[em], beta[em] * Le * w[:, None])
-        sc_ = hk[scene.tri_scatters[prim]]
-        if sc_.size == 0:
-            break
-        idx, beta, wi = idx[sc_], beta[sc_], wi[sc_]
-        s = interact(scene, Hits(t=h.t[sc_], prim=h.prim[sc_], u=h.u[sc_], v=h.v[sc_]), wi)
+        sc = hk[scene.tri_scatters[prim]]
+        idx, beta, wi = idx[sc], beta[sc], wi[sc]
+        s = interact(scene, Hits(t=h.t[sc], prim=h.prim[sc], u=h.u[sc], v=h.v[sc]), wi)
         wo = -wi
     return out
 
@@ -348,7 +431,7 @@ def add_rows(acc: np.ndarray, rows: np.ndarray, vals: np.ndarray) -> None:
 
 
 def ambient_occlusion(intersector, p: np.ndarray, ng: np.ndarray, ns: np.ndarray, rng: np.random.Generator, *,
-                      samples: int, max_distance: float, eps: float, counter: _Counter | None = None) -> np.ndarray:
+                      samples: int, max_distance: float, eps: float, counter: RayCounter | None = None) -> np.ndarray:
     """Cosine-weighted ambient occlusion at surface points.
 
     Parameters
@@ -387,7 +470,7 @@ def render(scene: TraceScene, camera: Camera, mask: np.ndarray, settings: Render
         raise ValueError(f"mask shape {mask.shape} does not match the camera's {(H, W)}")
     pix = np.flatnonzero(mask)
     n = pix.size
-    counter = _Counter()
+    counter = RayCounter()
     Ls = np.zeros((n, 3))
     lum2 = np.zeros(n)
     cnt = np.zeros(n, np.int64)
@@ -398,10 +481,13 @@ def render(scene: TraceScene, camera: Camera, mask: np.ndarray, settings: Render
     nrm = np.zeros((n, 3))
     active = np.arange(n)
     done = 0
+    draws = PathDraws(rng)
+    opts = PathOptions(max_depth=settings.max_depth, rr_depth=settings.rr_depth, ray_eps=settings.ray_eps,
+                       ao_samples=settings.ao_samples, ao_distance=settings.ao_distance)
     while active.size and done < settings.spp:
         b = min(settings.spp_batch, settings.spp - done)
         loc = np.repeat(active, b)
-        r = trace_samples(scene, camera, pix[loc], settings, rng, counter)
+        r = trace_paths(scene, camera, pix[loc], draws, opts, counter)
         add_rows(Ls, loc, r["L"])
         lum = r["L"] @ LUMINANCE.astype(np.float64)
         lum2 += np.bincount(loc, weights=lum * lum, minlength=n)
