@@ -10,11 +10,13 @@ velocity into the surface. A paper-thin scan surface is therefore never crossed 
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from pipeline.physics.collide import room_distance
 from pipeline.physics.integrate import quat_to_mat
-from pipeline.physics.types import Model
+from pipeline.physics.types import Model, State
 
 
 def _nlerp(q0: np.ndarray, q1: np.ndarray, s: np.ndarray) -> np.ndarray:
@@ -23,9 +25,24 @@ def _nlerp(q0: np.ndarray, q1: np.ndarray, s: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
-def advance(model: Model, pos0: np.ndarray, quat0: np.ndarray, pos1: np.ndarray, quat1: np.ndarray,
-            vel: np.ndarray, angvel: np.ndarray, moved: np.ndarray
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+class Advanced(NamedTuple):
+    """What :func:`advance` returns."""
+
+    state: State          # the state with the clipped poses and velocities
+    clipped: np.ndarray   # (B,) bool, bodies whose motion was clipped
+
+
+def advance(model: Model, start: State, state: State) -> Advanced:
+    """Clip each awake body's motion from its pose in ``start`` to its pose in ``state`` (the same step
+    integrated) at the room surface."""
+    pos, quat, vel, angvel, hit = _advance(model, start.pos, start.quat, state.pos, state.quat, state.vel,
+                                           state.angvel, ~state.asleep)
+    return Advanced(state.replace(pos=pos, quat=quat, vel=vel, angvel=angvel), hit)
+
+
+def _advance(model: Model, pos0: np.ndarray, quat0: np.ndarray, pos1: np.ndarray, quat1: np.ndarray,
+             vel: np.ndarray, angvel: np.ndarray, moved: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Clip each moved body's motion from (pos0, quat0) to (pos1, quat1) at the room surface.
 
     Parameters

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.physics.step import penetration, step
-from pipeline.physics.types import Body, Model, Options, State, build_model, make_state, model_poses
+from pipeline.physics.io import build_model, make_state, model_poses
+from pipeline.physics.types import Body, Model, Options, State
 
 log = logging.getLogger(__name__)
 

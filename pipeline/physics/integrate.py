@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.physics.types import Model, State
+
 
 def quat_to_mat(q: np.ndarray) -> np.ndarray:
     """(B, 4) unit quaternions (w, x, y, z) -> (B, 3, 3) rotation matrices."""
@@ -82,32 +84,20 @@ def inertia_world(R: np.ndarray, inertia: np.ndarray) -> np.ndarray:
     return np.einsum("bij,bj,bkj->bik", R, inertia, R)
 
 
-def integrate(model, state, vel: np.ndarray, angvel: np.ndarray,
-              active: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Advance positions and orientations of the ``active`` bodies by one step with the new velocities.
+def integrate(model: Model, state: State) -> State:
+    """Advance positions and orientations of the awake bodies by one step with the state's velocities.
 
-    Parameters
-    ----------
-    model
-        :class:`~pipeline.physics.types.Model`.
-    state
-        :class:`~pipeline.physics.types.State` at the start of the step.
-    vel, angvel
-        (B, 3) float64 velocities after gravity and contact impulses (m/s, rad/s world).
-    active
-        (B,) bool, bodies that move (asleep ones keep their pose).
-
-    Returns
-    -------
-    pos (B, 3), quat (B, 4), angvel (B, 3): new com positions, orientations, and the angular velocity
-    re-derived from the angular momentum at the new orientation.
+    ``state`` holds the poses at the start of the step and the velocities after gravity and contact
+    impulses; asleep bodies keep their pose. The returned state has the new com positions and
+    orientations, and the angular velocity re-derived from the angular momentum at the new orientation.
     """
+    vel, angvel, active = state.vel, state.angvel, ~state.asleep
     dt = model.opt.timestep
     pos = state.pos.copy()
     quat = state.quat.copy()
     w = angvel.copy()
     if not np.any(active):
-        return pos, quat, w
+        return state.replace(pos=pos, quat=quat, angvel=w)
     a = active
     pos[a] = state.pos[a] + dt * vel[a]
     R0 = quat_to_mat(state.quat[a])
@@ -121,4 +111,4 @@ def integrate(model, state, vel: np.ndarray, angvel: np.ndarray,
     quat[a] = q
     R1 = quat_to_mat(q)
     w[a] = np.einsum("bij,bj->bi", inertia_world_inv(R1, model.body_inertia[a]), L)
-    return pos, quat, w
+    return state.replace(pos=pos, quat=quat, angvel=w)

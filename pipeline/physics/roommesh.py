@@ -1,6 +1,6 @@
 """The room's surface for exact contact distances: :class:`RoomMesh` (Open3D's BVH, built once per room).
 
-Its own module so that :mod:`pipeline.physics.types` (which builds a model around one) and
+Its own module so that :mod:`pipeline.physics.io` (which builds a model around one) and
 :mod:`pipeline.physics.collide` (which queries it) both import it without importing each other.
 """
 

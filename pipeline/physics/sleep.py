@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.physics.types import Model
+from pipeline.physics.types import Model, State
 
 
-def wake(model: Model, pos: np.ndarray, vel: np.ndarray, angvel: np.ndarray,
-         asleep: np.ndarray) -> np.ndarray:
-    """(B,) bool new sleep flags: a sleeper whose bounding sphere (plus a margin) reaches an awake body
-    moving faster than ``Options.wake_speed`` wakes up (repeated so a chain of touching sleepers wakes).
-    """
+def wake(model: Model, state: State) -> State:
+    """A sleeper whose bounding sphere (plus a margin) reaches an awake body moving faster than
+    ``Options.wake_speed`` wakes up (repeated so a chain of touching sleepers wakes); its rest timer
+    restarts."""
+    asleep = _woken(model, state.pos, state.vel, state.angvel, state.asleep)
+    return state.replace(asleep=asleep, rest_time=np.where(state.asleep & ~asleep, 0.0, state.rest_time))
+
+
+def _woken(model: Model, pos: np.ndarray, vel: np.ndarray, angvel: np.ndarray, asleep: np.ndarray) -> np.ndarray:
     asleep = asleep.copy()
     if not np.any(asleep) or np.all(asleep):
         return asleep
@@ -30,37 +34,33 @@ def wake(model: Model, pos: np.ndarray, vel: np.ndarray, angvel: np.ndarray,
         waker = woken
 
 
-def update_sleep(model: Model, vel: np.ndarray, angvel: np.ndarray, asleep: np.ndarray,
-                 rest_time: np.ndarray, pos: np.ndarray | None = None, quat: np.ndarray | None = None,
-                 anchor_pos: np.ndarray | None = None, anchor_quat: np.ndarray | None = None
-                 ) -> tuple[np.ndarray, ...]:
+def update_sleep(model: Model, state: State) -> State:
     """Advance rest timers and put bodies that rested ``Options.sleep_time`` to sleep.
 
-    A body rests while it is slow (``sleep_linear``/``sleep_angular``) or, with poses given, while
-    none of its points has moved more than ``sleep_drift`` from where its rest began (the anchor):
-    contact jitter on rough scan surfaces kicks velocities without moving the body anywhere.
-
-    Returns new ``(vel, angvel, asleep, rest_time, anchor_pos, anchor_quat)``; sleeping bodies get
-    zero velocity. Anchors are None when poses are not given.
+    A body rests while it is slow (``sleep_linear``/``sleep_angular``) or while none of its points has
+    moved more than ``sleep_drift`` from where its rest began (the anchor): contact jitter on rough scan
+    surfaces kicks velocities without moving the body anywhere. Sleeping bodies get zero velocity.
     """
     opt = model.opt
+    vel, angvel, asleep, rest_time = state.vel, state.angvel, state.asleep, state.rest_time
+    pos, quat, anchor_pos, anchor_quat = state.pos, state.quat, state.anchor_pos, state.anchor_quat
     still = (np.linalg.norm(vel, axis=1) < opt.sleep_linear) & (np.linalg.norm(angvel, axis=1) < opt.sleep_angular)
-    if pos is not None:
-        if anchor_pos is None:
-            anchor_pos, anchor_quat = pos.copy(), quat.copy()
-        dq = np.abs(np.sum(quat * anchor_quat, axis=1)).clip(0, 1)
-        drift = np.linalg.norm(pos - anchor_pos, axis=1) + 2 * np.arccos(dq) * model.body_bound
-        near = drift < opt.sleep_drift
-        # slow bodies always rest; fast ones only while they jitter in place (no more than 10x)
-        calm = (np.linalg.norm(vel, axis=1) < 10 * opt.sleep_linear) & \
-            (np.linalg.norm(angvel, axis=1) < 10 * opt.sleep_angular)
-        resting = still | (near & calm)
-        moved = ~near
-        anchor_pos = np.where(moved[:, None], pos, anchor_pos)
-        anchor_quat = np.where(moved[:, None], quat, anchor_quat)
-        still = resting & ~moved | still & moved
+    if anchor_pos is None:
+        anchor_pos, anchor_quat = pos.copy(), quat.copy()
+    dq = np.abs(np.sum(quat * anchor_quat, axis=1)).clip(0, 1)
+    drift = np.linalg.norm(pos - anchor_pos, axis=1) + 2 * np.arccos(dq) * model.body_bound
+    near = drift < opt.sleep_drift
+    # slow bodies always rest; fast ones only while they jitter in place (no more than 10x)
+    calm = (np.linalg.norm(vel, axis=1) < 10 * opt.sleep_linear) & \
+        (np.linalg.norm(angvel, axis=1) < 10 * opt.sleep_angular)
+    resting = still | (near & calm)
+    moved = ~near
+    anchor_pos = np.where(moved[:, None], pos, anchor_pos)
+    anchor_quat = np.where(moved[:, None], quat, anchor_quat)
+    still = resting & ~moved | still & moved
     rest_time = np.where(still | asleep, rest_time + opt.timestep, 0.0)
     asleep = asleep | (rest_time >= opt.sleep_time)
     vel = np.where(asleep[:, None], 0.0, vel)
     angvel = np.where(asleep[:, None], 0.0, angvel)
-    return vel, angvel, asleep, rest_time, anchor_pos, anchor_quat
+    return state.replace(vel=vel, angvel=angvel, asleep=asleep, rest_time=rest_time, anchor_pos=anchor_pos,
+                         anchor_quat=anchor_quat)

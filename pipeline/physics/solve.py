@@ -88,8 +88,7 @@ def project_cone(p: np.ndarray, mu: np.ndarray) -> np.ndarray:
     return out
 
 
-def solve_contacts(model: Model, state: State, contacts: Contacts, vel_free: np.ndarray,
-                   angvel_free: np.ndarray, dynamic: np.ndarray,
+def solve_contacts(model: Model, state: State, free: State, contacts: Contacts,
                    warm: np.ndarray | None = None) -> SolveResult:
     """Contact impulses and the velocities they produce.
 
@@ -97,15 +96,15 @@ def solve_contacts(model: Model, state: State, contacts: Contacts, vel_free: np.
     ----------
     model, state
         Model and the state at the start of the step (velocities ``u`` for the reference acceleration).
+    free
+        The state with the velocities after external forces (gravity) only; its awake bodies move this
+        step (sleeping bodies act as static).
     contacts
         From :func:`~pipeline.physics.collide.collide`.
-    vel_free, angvel_free
-        (B, 3) velocities after external forces (gravity) only.
-    dynamic
-        (B,) bool: bodies that move this step (others act as static: sleeping bodies).
     warm
         (C, 3) initial impulses (warm start), or None for zeros.
     """
+    vel_free, angvel_free, dynamic = free.vel, free.angvel, ~free.asleep
     opt = model.opt
     dt = opt.timestep
     C = contacts.count
@@ -349,18 +348,18 @@ def _active_set_solve(p0: np.ndarray, hmul, c: np.ndarray, mu: np.ndarray, Jf: n
     return project_cone(cK, mu), False
 
 
-def rolling_resistance(model: Model, state: State, contacts: Contacts, impulse: np.ndarray,
-                       angvel: np.ndarray, dynamic: np.ndarray) -> np.ndarray:
-    """Rolling and torsional resistance: each body's angular momentum shrinks by up to
-    ``Options.rolling`` (m) times the normal impulse it received this step (N s).
+def rolling_resistance(model: Model, state: State, contacts: Contacts, impulse: np.ndarray) -> State:
+    """Rolling and torsional resistance: each awake body's angular momentum shrinks by up to
+    ``Options.rolling`` (m) times the normal impulse it received (``impulse``, N s, per contact).
 
     Point contacts cannot stop a ball rolling or a body spinning about its contact normal; real
     contacts have a patch that does. This is a simple isotropic stand-in for MuJoCo's condim 6 rolling
-    and torsional friction. Returns the new (B, 3) angular velocities.
+    and torsional friction. Returns the state with the new angular velocities.
     """
+    angvel, dynamic = state.angvel, ~state.asleep
     mu_r = model.opt.rolling
     if mu_r <= 0 or contacts.count == 0:
-        return angvel
+        return state
     B = model.nbody
     pn = impulse[:, 0]
     N = np.bincount(contacts.body_a, pn, minlength=B)
@@ -368,7 +367,7 @@ def rolling_resistance(model: Model, state: State, contacts: Contacts, impulse: 
     N += np.bincount(contacts.body_b[ob], pn[ob], minlength=B)
     act = np.flatnonzero(dynamic & (N > 0))
     if not len(act):
-        return angvel
+        return state
     R = quat_to_mat(state.quat[act])
     from pipeline.physics.integrate import inertia_world
 
@@ -378,4 +377,4 @@ def rolling_resistance(model: Model, state: State, contacts: Contacts, impulse: 
     L_new = L * (1 - cut / np.maximum(Lm, 1e-300))[:, None]
     out = angvel.copy()
     out[act] = np.einsum("bij,bj->bi", inertia_world_inv(R, model.body_inertia[act]), L_new)
-    return out
+    return state.replace(angvel=out)

@@ -1,8 +1,9 @@
 """``step(model, state) -> State``: one time step made of named sub-steps.
 
-``wake`` -> external forces -> ``collide`` -> ``rolling_resistance`` -> ``solve_contacts`` ->
-``integrate`` -> ``ccd.advance``
--> ``update_sleep``. No validation here: :func:`~pipeline.physics.types.build_model` did it once.
+``wake`` -> ``collide`` -> external forces -> ``rolling_resistance`` -> ``solve_contacts`` ->
+``integrate`` -> ``ccd.advance`` -> ``update_sleep``, each ``(model, state) -> state`` (collide and the
+solver return their named results). No validation here: :func:`~pipeline.physics.io.build_model` did it
+once.
 """
 
 from __future__ import annotations
@@ -30,38 +31,32 @@ def warm_start(state: State, contacts: Contacts) -> np.ndarray:
     return out
 
 
-def external(model: Model, state: State, active: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Velocities after gravity for the active bodies (sleeping ones stay at zero)."""
+def external(model: Model, state: State) -> State:
+    """The state with the velocities after gravity for the awake bodies (sleeping ones stay at zero)."""
     g = np.asarray(model.opt.gravity, float)
-    vel = np.where(active[:, None], state.vel + model.opt.timestep * g, state.vel)
-    return vel, state.angvel.copy()
+    vel = np.where(~state.asleep[:, None], state.vel + model.opt.timestep * g, state.vel)
+    return state.replace(vel=vel, angvel=state.angvel.copy())
 
 
 def step(model: Model, state: State) -> State:
-    """Advance ``state`` by ``model.opt.timestep`` seconds.
+    """Advance ``state`` by ``model.opt.timestep`` seconds; every sub-step maps a state to a state.
 
     Loops of steps should run under :func:`pipeline.physics.drop.one_blas_thread` (as
     :func:`~pipeline.physics.drop.run` does): the solver's products are small and a threaded BLAS makes
     them many times slower on a busy machine.
     """
-    asleep = wake(model, state.pos, state.vel, state.angvel, state.asleep)
-    state = state.replace(asleep=asleep, rest_time=np.where(state.asleep & ~asleep, 0.0, state.rest_time))
-    active = ~asleep
-    vel_free, angvel_free = external(model, state, active)
+    state = wake(model, state)
     contacts = collide(model, state)
     warm = warm_start(state, contacts)
     # rolling resistance from last step's normal impulses, before the solve so contacts stay consistent
-    angvel_free = rolling_resistance(model, state, contacts, warm, angvel_free, active)
-    sol = solve_contacts(model, state, contacts, vel_free, angvel_free, active, warm)
-    pos, quat, angvel = integrate(model, state, sol.vel, sol.angvel, active)
-    pos, quat, vel, angvel, _ = advance(model, state.pos, state.quat, pos, quat, sol.vel, angvel, active)
-    vel, angvel, asleep, rest, apos, aquat = update_sleep(model, vel, angvel, asleep, state.rest_time, pos,
-                                                          quat, state.anchor_pos, state.anchor_quat)
+    free = rolling_resistance(model, external(model, state), contacts, warm)
+    sol = solve_contacts(model, state, free, contacts, warm)
+    moved = integrate(model, state.replace(vel=sol.vel, angvel=sol.angvel))
+    out = update_sleep(model, advance(model, state, moved).state)
     pen = float(max(0.0, -contacts.dist.min())) if contacts.count else 0.0
     keep = np.any(sol.impulse != 0, axis=1)
-    return State(time=state.time + model.opt.timestep, pos=pos, quat=quat, vel=vel, angvel=angvel,
-                 asleep=asleep, rest_time=rest, ws_key=contacts.key[keep], ws_impulse=sol.impulse[keep],
-                 max_penetration=pen, anchor_pos=apos, anchor_quat=aquat)
+    return out.replace(time=state.time + model.opt.timestep, ws_key=contacts.key[keep],
+                       ws_impulse=sol.impulse[keep], max_penetration=pen)
 
 
 def penetration(model: Model, state: State) -> float:

@@ -1,0 +1,286 @@
+"""Building and validating physics models and states (MJX's ``io.py``): the boundary where caller input
+becomes the frozen types of :mod:`pipeline.physics.types`, checked once.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pipeline.errors import InputError
+from pipeline.physics.types import KIND_POLY, KIND_SPHERE, PAD_PLANE_OFFSET, Body, Model, Options, State
+
+
+# ---------------------------------------------------------------------------------------------------
+# Geometry helpers
+# ---------------------------------------------------------------------------------------------------
+
+def hull_planes(points: np.ndarray, *, max_vertices: int = 48, max_points: int = 64,
+                edge_spacing: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """Convex hull of ``points`` reduced to at most ``max_vertices`` extreme vertices.
+
+    Parameters
+    ----------
+    points
+        (N, 3) float64, m.
+    max_vertices
+        Largest number of hull vertices kept (farthest-point subset of the hull's vertices).
+    max_points
+        Largest number of contact points (hull vertices first, then points along the edges).
+    edge_spacing
+        Spacing of the edge points, m (raised when ``max_points`` would be exceeded).
+
+    Returns
+    -------
+    verts : (V, 3) float64 hull vertices followed by edge points (contact points)
+    planes : (F, 4) float64 outward unit normals and offsets (n.x <= d inside), coplanar faces merged
+    """
+    from scipy.spatial import ConvexHull
+
+    pts = np.asarray(points, float)
+    hull = ConvexHull(pts)
+    verts = pts[hull.vertices]
+    if len(verts) > max_vertices:
+        # farthest-point sampling keeps the extreme shape; start from the point farthest from the mean
+        chosen = [int(np.argmax(np.linalg.norm(verts - verts.mean(0), axis=1)))]
+        d = np.linalg.norm(verts - verts[chosen[0]], axis=1)
+        for _ in range(max_vertices - 1):
+            i = int(np.argmax(d))
+            chosen.append(i)
+            d = np.minimum(d, np.linalg.norm(verts - verts[i], axis=1))
+        verts = verts[np.array(chosen)]
+        hull = ConvexHull(verts)
+        verts = verts[hull.vertices]
+        hull = ConvexHull(verts)
+    eq = hull.equations  # (F, 4): n.x + c <= 0 inside
+    # points along the hull's edges (and triangle diagonals): contacts where edges cross faces
+    # (two boxes turned against each other touch where their edges cross, not at vertices)
+    e = np.sort(np.concatenate([hull.simplices[:, [0, 1]], hull.simplices[:, [1, 2]],
+                                hull.simplices[:, [2, 0]]]), axis=1)
+    e = np.unique(e, axis=0)
+    p0, p1 = hull.points[e[:, 0]], hull.points[e[:, 1]]
+    length = np.linalg.norm(p1 - p0, axis=1)
+    bound = float(np.linalg.norm(verts - verts.mean(0), axis=1).max())
+    spacing = max(edge_spacing, bound / 3, float(length.sum()) / max(max_points - len(verts), 1))
+    extra = [verts]
+    for k in range(1, int(np.ceil(length.max() / spacing)) if len(length) else 1):
+        cnt = np.ceil(length / spacing)
+        sel = k < cnt
+        extra.append(p0[sel] + (p1[sel] - p0[sel]) * (k / cnt[sel])[:, None])
+    verts = np.concatenate(extra)[:max_points]
+    planes = np.concatenate([eq[:, :3], -eq[:, 3:4]], axis=1)
+    # merge coplanar triangles (same plane up to rounding)
+    keyed = np.round(planes / np.array([1e-6, 1e-6, 1e-6, 1e-7]))
+    _, idx = np.unique(keyed, axis=0, return_index=True)
+    return verts, planes[np.sort(idx)]
+
+
+def box_body(half_extents, mass: float, *, friction: float = -1.0) -> Body:
+    """A solid box centred at the origin with the given half extents (m)."""
+    h = np.asarray(half_extents, float)
+    corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float) * h
+    ext = 2 * h
+    inertia = mass / 12.0 * np.diag([ext[1] ** 2 + ext[2] ** 2, ext[0] ** 2 + ext[2] ** 2,
+                                     ext[0] ** 2 + ext[1] ** 2])
+    return Body(vertices=corners, mass=mass, com=np.zeros(3), inertia=inertia, friction=friction)
+
+
+def sphere_body(radius: float, mass: float, *, friction: float = -1.0) -> Body:
+    """A solid sphere centred at the origin."""
+    return Body(vertices=np.zeros((1, 3)), mass=mass, com=np.zeros(3),
+                inertia=np.eye(3) * 0.4 * mass * radius ** 2, friction=friction, radius=radius)
+
+
+def mesh_body(vertices: np.ndarray, faces: np.ndarray, *, density: float = 500.0,
+              friction: float = -1.0) -> Body:
+    """A body with the mass properties of the convex hull of a mesh (used until meshprep's solids).
+
+    Parameters
+    ----------
+    vertices
+        (V, 3) float64, m.
+    faces
+        (T, 3) int; only used for nothing but shape checks (the hull is what collides).
+    density
+        kg/m^3.
+    """
+    import trimesh
+
+    hull = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces)).convex_hull
+    mp = hull.mass_properties
+    mass = float(mp["volume"]) * density
+    return Body(vertices=np.asarray(hull.vertices, float), mass=mass, com=np.asarray(mp["center_mass"]),
+                inertia=np.asarray(mp["inertia"]) * density, friction=friction)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Validation at the boundary
+# ---------------------------------------------------------------------------------------------------
+
+def _check_finite(name: str, a: np.ndarray) -> None:
+    if not np.all(np.isfinite(a)):
+        raise InputError(f"physics model: {name} has non-finite values; fix the object's mesh/solid")
+
+
+def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
+                room: dict | None = None, room_thickness: float = 0.01,
+                opt: Options | None = None, max_vertices: int = 48) -> Model:
+    """Validate bodies and the static world and build a frozen :class:`Model`.
+
+    Parameters
+    ----------
+    bodies
+        Body descriptions in their object-model frames.
+    planes
+        (P, 4) static half-spaces ``n.x >= d`` (n need not be unit); None = none.
+    room
+        Room proxy with ``origin`` (3,), ``spacing`` float and ``udf`` (nx, ny, nz), or None. Optional:
+        ``mesh_vertices`` (V, 3) / ``mesh_faces`` (T, 3), the room surface for exact distances at
+        contacts (the grid's trilinear gradient near the surface is off by mm), or ``room_mesh``, a
+        prebuilt :class:`~pipeline.physics.roommesh.RoomMesh` (shared across drops of one room).
+    room_thickness
+        Half-thickness of the room surface shell, m (scan surfaces have no inside).
+    opt
+        Options; defaults when None.
+    max_vertices
+        Hull vertices kept per body.
+    """
+    opt = opt or Options()
+    if opt.timestep <= 0 or not math.isfinite(opt.timestep):
+        raise InputError(f"physics options: timestep = {opt.timestep}; must be a positive number of seconds")
+    B = len(bodies)
+    masses, inertias, kinds, radii, frics, verts, plns, Rs, ts, bounds = ([] for _ in range(10))
+    for i, b in enumerate(bodies):
+        m = float(b.mass)
+        if not (m > 0 and math.isfinite(m)):
+            raise InputError(f"physics model: body {i} has mass {m}; give a positive mass (kg)")
+        I = np.asarray(b.inertia, float).reshape(3, 3)
+        com = np.asarray(b.com, float).reshape(3)
+        _check_finite(f"body {i} inertia", I)
+        _check_finite(f"body {i} com", com)
+        I = 0.5 * (I + I.T)
+        w, V = np.linalg.eigh(I)
+        if w[0] <= 0:
+            raise InputError(f"physics model: body {i} inertia is not positive definite "
+                             f"(eigenvalues {w}); recompute the solid's mass properties")
+        if w[0] + w[1] < w[2] * (1 - 1e-6):
+            raise InputError(f"physics model: body {i} inertia violates the triangle inequality "
+                             f"(principal moments {w}); it cannot belong to a real body")
+        if np.linalg.det(V) < 0:
+            V[:, 2] *= -1
+        R_m2b = V.T
+        t_m2b = -R_m2b @ com
+        fr = opt.friction if b.friction < 0 else float(b.friction)
+        if b.radius > 0:
+            kinds.append(KIND_SPHERE)
+            radii.append(float(b.radius))
+            vb = np.zeros((1, 3))
+            pb = np.zeros((0, 4))
+            bound = float(b.radius)
+        else:
+            pts = np.asarray(b.vertices, float).reshape(-1, 3)
+            _check_finite(f"body {i} vertices", pts)
+            if len(pts) < 4:
+                raise InputError(f"physics model: body {i} has {len(pts)} vertices; a solid needs >= 4")
+            pts_b = pts @ R_m2b.T + t_m2b
+            ck = (max_vertices, pts_b.tobytes())
+            if ck in b.hull_cache:
+                vb, pb = b.hull_cache[ck]
+            else:
+                try:
+                    vb, pb = hull_planes(pts_b, max_vertices=max_vertices)
+                except Exception as e:  # qhull errors: flat or degenerate point sets
+                    raise InputError(f"physics model: body {i} vertices span no volume ({e}); "
+                                     f"a collider needs a 3D hull") from None
+                b.hull_cache.clear()
+                b.hull_cache[ck] = (vb, pb)
+            kinds.append(KIND_POLY)
+            radii.append(0.0)
+            bound = float(np.linalg.norm(vb, axis=1).max())
+        masses.append(m)
+        inertias.append(w)
+        frics.append(fr)
+        verts.append(vb)
+        plns.append(pb)
+        Rs.append(R_m2b)
+        ts.append(t_m2b)
+        bounds.append(bound)
+    V = max([len(v) for v in verts], default=1)
+    F = max([len(p) for p in plns], default=1) or 1
+    body_verts = np.zeros((B, V, 3))
+    body_planes = np.zeros((B, F, 4))
+    body_planes[:, :, 3] = PAD_PLANE_OFFSET
+    for i in range(B):
+        n = len(verts[i])
+        body_verts[i, :n] = verts[i]
+        body_verts[i, n:] = verts[i][0]
+        body_planes[i, :len(plns[i])] = plns[i]
+    pl = np.zeros((0, 4)) if planes is None else np.asarray(planes, float).reshape(-1, 4)
+    _check_finite("planes", pl)
+    nn = np.linalg.norm(pl[:, :3], axis=1)
+    if np.any(nn <= 0):
+        raise InputError("physics model: a static plane has a zero normal")
+    pl = pl / nn[:, None]
+    if room is not None:
+        udf = np.ascontiguousarray(room["udf"], np.float32)
+        spacing = float(room["spacing"])
+        origin = np.asarray(room["origin"], float).reshape(3)
+        if udf.ndim != 3 or min(udf.shape) < 2:
+            raise InputError(f"room proxy: udf has shape {udf.shape}; expected a 3D grid >= 2 per axis")
+        if not spacing > 0:
+            raise InputError(f"room proxy: spacing = {spacing}; must be positive metres")
+        _check_finite("room udf", udf)
+        room_mesh = room.get("room_mesh")
+        if room_mesh is None and "mesh_vertices" in room and "mesh_faces" in room:
+            from pipeline.physics.roommesh import RoomMesh
+
+            room_mesh = RoomMesh(room["mesh_vertices"], room["mesh_faces"])
+    else:
+        udf, spacing, origin = np.zeros((0, 0, 0), np.float32), 0.0, np.zeros(3)
+        room_mesh = None
+    return Model(body_mass=np.array(masses, float).reshape(B), body_inertia=np.array(inertias).reshape(B, 3),
+                 body_kind=np.array(kinds, np.int32).reshape(B), body_radius=np.array(radii).reshape(B),
+                 body_friction=np.array(frics).reshape(B), body_verts=body_verts,
+                 body_nvert=np.array([len(v) for v in verts], np.int32).reshape(B), body_planes=body_planes,
+                 body_bound=np.array(bounds).reshape(B), body_R_m2b=np.array(Rs).reshape(B, 3, 3),
+                 body_t_m2b=np.array(ts).reshape(B, 3), plane=pl, room_origin=origin,
+                 room_spacing=spacing, room_udf=udf, room_thickness=float(room_thickness), opt=opt,
+                 room_mesh=room_mesh)
+
+
+def make_state(model: Model, R_m2w: np.ndarray, t_m2w: np.ndarray, *, vel: np.ndarray | None = None,
+               angvel: np.ndarray | None = None) -> State:
+    """Initial state from object-model poses in the world (model frame, not com frame).
+
+    Parameters
+    ----------
+    R_m2w
+        (B, 3, 3) float64 model-to-world rotations.
+    t_m2w
+        (B, 3) float64, m, model-to-world translations.
+    vel, angvel
+        (B, 3) float64 initial com velocity (m/s) and angular velocity (rad/s, world); zeros if None.
+    """
+    from pipeline.physics.integrate import mat_to_quat
+
+    B = model.nbody
+    R_m2w = np.asarray(R_m2w, float).reshape(B, 3, 3)
+    t_m2w = np.asarray(t_m2w, float).reshape(B, 3)
+    R_b2w = R_m2w @ np.transpose(model.body_R_m2b, (0, 2, 1))
+    pos = t_m2w - np.einsum("bij,bj->bi", R_b2w, model.body_t_m2b)
+    z = np.zeros((B, 3))
+    return State(time=0.0, pos=pos, quat=mat_to_quat(R_b2w),
+                 vel=z.copy() if vel is None else np.asarray(vel, float).reshape(B, 3),
+                 angvel=z.copy() if angvel is None else np.asarray(angvel, float).reshape(B, 3),
+                 asleep=np.zeros(B, bool), rest_time=np.zeros(B))
+
+
+def model_poses(model: Model, state: State) -> tuple[np.ndarray, np.ndarray]:
+    """Object-model-to-world poses of every body: ``(R_m2w (B,3,3), t_m2w (B,3))``."""
+    from pipeline.physics.integrate import quat_to_mat
+
+    R_b2w = quat_to_mat(state.quat)
+    R_m2w = R_b2w @ model.body_R_m2b
+    t_m2w = np.einsum("bij,bj->bi", R_b2w, model.body_t_m2b) + state.pos
+    return R_m2w, t_m2w
