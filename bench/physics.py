@@ -24,7 +24,7 @@ from bench.common import SHARED_DATA, BenchResult
 log = logging.getLogger(__name__)
 
 
-def _room(cache: Path) -> tuple[dict, np.ndarray, dict]:
+def _room(cache: Path) -> tuple:
     """Room proxy of the redkitchen scan (ingest: TSDF with open3d 0.19; meshprep distance grid)."""
     from meshprep.proxy import room_distance_grid
 
@@ -46,12 +46,12 @@ def _room(cache: Path) -> tuple[dict, np.ndarray, dict]:
         room = room_distance_grid(v, f, spacing=0.02, cameras=scan.T_c2w[:, :3, 3])
         t_grid = time.perf_counter() - t0
         np.savez(npz, **room)
-    from pipeline.physics.roommesh import RoomMesh
+    from pipeline.physics.io import room_from_arrays
 
     v, f, _ = load_room_mesh(scan)
-    room["room_mesh"] = RoomMesh(v, f)   # built once, shared by every drop (the stage builds it per drop)
+    room = room_from_arrays({**room, "mesh_vertices": v, "mesh_faces": f})   # the mesh's BVH built once
     return room, np.asarray(scan.up_w, float), {"ingest_s": round(t_ingest, 1), "grid_s": round(t_grid, 1),
-                                                 "grid_shape": list(np.shape(room["udf"]))}
+                                                 "grid_shape": list(np.shape(room.udf))}
 
 
 def _objects() -> list:
@@ -173,7 +173,7 @@ def _pen_stats(p: np.ndarray) -> dict:
             "median_m": float(np.median(p)), "share_within_2mm": float(np.mean(p <= 2e-3))}
 
 
-def room_drops(room: dict, up: np.ndarray, bodies: list, n_drops: int, n_obj: int, dt: float,
+def room_drops(room, up: np.ndarray, bodies: list, n_drops: int, n_obj: int, dt: float,
                p_velocity: float = 0.5, info=None, **settings) -> dict:
     """Drops of ``n_obj`` objects (``settings`` override :class:`DropSettings` fields)."""
     from pipeline.physics.drop import DropSettings, simulate_drop

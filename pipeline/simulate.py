@@ -39,7 +39,7 @@ def body_of(proxy: dict[str, np.ndarray], friction: float):
                 friction=friction)
 
 
-def simulate(cfg: SimulateConfig, *, scene: str, drop: int, room: dict, up: np.ndarray,
+def simulate(cfg: SimulateConfig, *, scene: str, drop: int, room, up: np.ndarray,
              proxies: dict[int, dict], rng: np.random.Generator, view=None, info=None
              ) -> tuple[Placement, dict]:
     """One drop: sample objects, spawn them above the room and simulate them to rest.
@@ -124,16 +124,14 @@ def _stamp(path: Path) -> tuple[str, int, int]:
 
 @functools.lru_cache(maxsize=2)
 def _cached_room(stamp: tuple[str, int, int], up: tuple[float, float, float]):
-    """Room proxy with its exact-distance mesh built, and its :class:`~pipeline.physics.drop.RoomInfo`,
-    once per worker process and room file (loading the grid, building the mesh's BVH and finding the
-    surface cost ~0.5 s, about a whole drop). Callers must not modify the returned dict."""
+    """The :class:`~pipeline.physics.types.Room` of a room proxy file (its exact-distance mesh built) and
+    its :class:`~pipeline.physics.drop.RoomInfo`, once per worker process and room file (loading the
+    grid, building the mesh's BVH and finding the surface cost ~0.5 s, about a whole drop)."""
     from pipeline.io import load_npz
-    from pipeline.physics.roommesh import RoomMesh
     from pipeline.physics.drop import room_info
+    from pipeline.physics.io import room_from_arrays
 
-    room = load_npz(stamp[0])
-    if "mesh_vertices" in room and "mesh_faces" in room:
-        room["room_mesh"] = RoomMesh(room.pop("mesh_vertices"), room.pop("mesh_faces"))
+    room = room_from_arrays(load_npz(stamp[0]))
     return room, room_info(room, np.array(up))
 
 
@@ -167,7 +165,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
             "asleep": int(np.sum(pl.at_rest)), "objects": len(pl.obj_ids), **facts}
 
 
-def _view_map(run_dir: Path, scan, room: dict, R_w2g: np.ndarray | None = None):
+def _view_map(run_dir: Path, scan, room, R_w2g: np.ndarray | None = None):
     """Votes of the scene's kept frames for spawn cells in the room frame ``R_w2g`` of
     :func:`pipeline.physics.drop.room_frame` (computed when None; None when nothing was selected or
     seen)."""

@@ -19,7 +19,7 @@ import numpy as np
 
 from pipeline.physics.step import penetration, step
 from pipeline.physics.io import build_model, make_state, model_poses
-from pipeline.physics.types import Body, Model, Options, State
+from pipeline.physics.types import Body, Model, Options, Room, State
 
 log = logging.getLogger(__name__)
 
@@ -68,26 +68,26 @@ def gravity_frame(up: np.ndarray) -> np.ndarray:
     return np.stack([x, np.cross(u, x), u])
 
 
-def _surface_points(room: dict | np.ndarray) -> np.ndarray:
+def _surface_points(room: Room | np.ndarray) -> np.ndarray:
     """(N, 3) float64 world grid nodes at the room surface; ``room`` may already be such points
     (:func:`surface_points` computed once and passed to several of the functions below)."""
     if isinstance(room, np.ndarray):
         return room
-    udf = np.asarray(room["udf"])
-    sp = float(room["spacing"])
+    udf = np.asarray(room.udf)
+    sp = float(room.spacing)
     ijk = np.argwhere(udf < 0.75 * sp)
     if len(ijk) == 0:
         raise ValueError("room proxy has no surface (udf never below the grid spacing)")
-    return np.asarray(room["origin"], float) + ijk * sp
+    return np.asarray(room.origin, float) + ijk * sp
 
 
-def surface_points(room: dict) -> np.ndarray:
+def surface_points(room: Room) -> np.ndarray:
     """(N, 3) float64 world grid nodes at the room surface (udf below 0.75 spacing), m; accepted in
     place of the room by :func:`room_frame`, :func:`floor_height` and :func:`room_bounds`."""
     return _surface_points(room)
 
 
-def room_frame(room: dict | np.ndarray, up: np.ndarray) -> np.ndarray:
+def room_frame(room: Room | np.ndarray, up: np.ndarray) -> np.ndarray:
     """(3, 3) world -> room frame: z = up, x/y = principal horizontal axes of the room surface (so the
     spawn box of a room whose walls are not aligned with the world axes stays inside the walls)."""
     R = gravity_frame(up)
@@ -99,7 +99,7 @@ def room_frame(room: dict | np.ndarray, up: np.ndarray) -> np.ndarray:
     return Rz @ R
 
 
-def floor_height(room: dict | np.ndarray, R_w2g: np.ndarray) -> float:
+def floor_height(room: Room | np.ndarray, R_w2g: np.ndarray) -> float:
     """Height (along the frame's z = up) of the floor: the most populated 1 cm height bin of the room
     surface among its lowest 30 % (the floor is the largest horizontal surface at the bottom)."""
     z = (_surface_points(room) @ R_w2g.T)[:, 2]
@@ -109,7 +109,7 @@ def floor_height(room: dict | np.ndarray, R_w2g: np.ndarray) -> float:
     return float(e[np.argmax(h)] + 0.005)
 
 
-def room_bounds(room: dict | np.ndarray, R_w2g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def room_bounds(room: Room | np.ndarray, R_w2g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Bounds (lo, hi) (3,) of the room surface in the frame ``R_w2g`` (0.5 / 99.5 percentiles of the
     grid nodes at the surface, so stray reconstruction blobs do not stretch them)."""
     g = _surface_points(room) @ R_w2g.T
@@ -128,7 +128,7 @@ class RoomInfo:
     floor: float          # m, floor height in that frame (:func:`floor_height`)
 
 
-def room_info(room: dict, up: np.ndarray) -> RoomInfo:
+def room_info(room: Room, up: np.ndarray) -> RoomInfo:
     """:class:`RoomInfo` of a room proxy for the world up vector ``up`` (3,)."""
     u = np.asarray(up, float) / np.linalg.norm(up)
     surf = surface_points(room)
@@ -191,7 +191,7 @@ def spawn(bodies: list[Body], model: Model, up: np.ndarray, settings: DropSettin
     return Rs, t
 
 
-def simulate_drop(bodies: list[Body], *, room: dict | None, up: np.ndarray, settings: DropSettings,
+def simulate_drop(bodies: list[Body], *, room: Room | None, up: np.ndarray, settings: DropSettings,
                   rng: np.random.Generator, planes: np.ndarray | None = None,
                   bounds: tuple[np.ndarray, np.ndarray] | None = None,
                   spawn_bounds: tuple[np.ndarray, np.ndarray] | None = None,

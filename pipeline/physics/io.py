@@ -5,11 +5,12 @@ becomes the frozen types of :mod:`pipeline.physics.types`, checked once.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 
 from pipeline.errors import InputError
-from pipeline.physics.types import KIND_POLY, KIND_SPHERE, PAD_PLANE_OFFSET, Body, Model, Options, State
+from pipeline.physics.types import KIND_POLY, KIND_SPHERE, PAD_PLANE_OFFSET, Body, Model, Options, Room, State
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -124,7 +125,7 @@ def _check_finite(name: str, a: np.ndarray) -> None:
 
 
 def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
-                room: dict | None = None, room_thickness: float = 0.01,
+                room: Room | None = None, room_thickness: float = 0.01,
                 opt: Options | None = None, max_vertices: int = 48) -> Model:
     """Validate bodies and the static world and build a frozen :class:`Model`.
 
@@ -135,10 +136,7 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
     planes
         (P, 4) static half-spaces ``n.x >= d`` (n need not be unit); None = none.
     room
-        Room proxy with ``origin`` (3,), ``spacing`` float and ``udf`` (nx, ny, nz), or None. Optional:
-        ``mesh_vertices`` (V, 3) / ``mesh_faces`` (T, 3), the room surface for exact distances at
-        contacts (the grid's trilinear gradient near the surface is off by mm), or ``room_mesh``, a
-        prebuilt :class:`~pipeline.physics.roommesh.RoomMesh` (shared across drops of one room).
+        The room (:func:`room_from_arrays`; its surface mesh is shared across the drops of one room), or None.
     room_thickness
         Half-thickness of the room surface shell, m (scan surfaces have no inside).
     opt
@@ -223,19 +221,12 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
         raise InputError("physics model: a static plane has a zero normal")
     pl = pl / nn[:, None]
     if room is not None:
-        udf = np.ascontiguousarray(room["udf"], np.float32)
-        spacing = float(room["spacing"])
-        origin = np.asarray(room["origin"], float).reshape(3)
+        udf, spacing, origin, room_mesh = room.udf, room.spacing, room.origin, room.mesh
         if udf.ndim != 3 or min(udf.shape) < 2:
             raise InputError(f"room proxy: udf has shape {udf.shape}; expected a 3D grid >= 2 per axis")
         if not spacing > 0:
             raise InputError(f"room proxy: spacing = {spacing}; must be positive metres")
         _check_finite("room udf", udf)
-        room_mesh = room.get("room_mesh")
-        if room_mesh is None and "mesh_vertices" in room and "mesh_faces" in room:
-            from pipeline.physics.roommesh import RoomMesh
-
-            room_mesh = RoomMesh(room["mesh_vertices"], room["mesh_faces"])
     else:
         udf, spacing, origin = np.zeros((0, 0, 0), np.float32), 0.0, np.zeros(3)
         room_mesh = None
@@ -284,3 +275,16 @@ def model_poses(model: Model, state: State) -> tuple[np.ndarray, np.ndarray]:
     R_m2w = R_b2w @ model.body_R_m2b
     t_m2w = np.einsum("bij,bj->bi", R_b2w, model.body_t_m2b) + state.pos
     return R_m2w, t_m2w
+
+
+def room_from_arrays(arrays: Mapping[str, np.ndarray]) -> Room:
+    """A :class:`~pipeline.physics.types.Room` from prep's room proxy arrays: ``origin`` (3,), ``spacing``,
+    ``udf`` (nx, ny, nz), and ``mesh_vertices`` (V, 3) / ``mesh_faces`` (T, 3) when present (the
+    surface's BVH is built here, once per room)."""
+    mesh = None
+    if "mesh_vertices" in arrays and "mesh_faces" in arrays:
+        from pipeline.physics.roommesh import RoomMesh
+
+        mesh = RoomMesh(arrays["mesh_vertices"], arrays["mesh_faces"])
+    return Room(origin=np.asarray(arrays["origin"], float).reshape(3), spacing=float(arrays["spacing"]),
+                udf=np.ascontiguousarray(arrays["udf"], np.float32), mesh=mesh)

@@ -58,6 +58,17 @@ class Options:
 
 
 @dataclass(frozen=True)
+class Room:
+    """The scanned room the bodies collide with (built by :func:`pipeline.physics.io.room_from_arrays`)."""
+
+    origin: np.ndarray           # (3,) float64, m, world position of udf[0, 0, 0]
+    spacing: float               # m, grid spacing
+    udf: np.ndarray              # (nx, ny, nz) float32, m, unsigned distance to the room surface
+    mesh: RoomMesh | None = None  # the surface itself, for exact distances at contacts (the grid's
+    #                               trilinear gradient near the surface is off by millimetres)
+
+
+@dataclass(frozen=True)
 class Model:
     """Static description of a scene: bodies, their geometry, the static world and options."""
 

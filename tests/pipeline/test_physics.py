@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from pipeline.errors import InputError
 from pipeline.physics import Body, Options, box_body, build_model, make_state, model_poses, sphere_body, step
 from pipeline.physics.ccd import advance
+from pipeline.physics.io import room_from_arrays
 from pipeline.physics.collide import collide, room_distance
 from pipeline.physics.drop import DropSettings, run, simulate_drop
 from pipeline.physics.integrate import inertia_world, mat_to_quat, quat_to_mat
@@ -42,7 +43,7 @@ def _sheet_room(half=0.5, spacing=0.02):
     """A zero-thickness horizontal sheet at z = 0 as an unsigned distance grid (open, one-sided)."""
     ax = np.arange(-half, half + 1e-9, spacing)
     _, _, Z = np.meshgrid(ax, ax, ax, indexing="ij")
-    return {"origin": np.full(3, -half), "spacing": spacing, "udf": np.abs(Z).astype(np.float32)}
+    return room_from_arrays({"origin": np.full(3, -half), "spacing": spacing, "udf": np.abs(Z).astype(np.float32)})
 
 
 def _box_room(size=(2.0, 2.0, 2.0), spacing=0.04, hole=None):
@@ -59,7 +60,7 @@ def _box_room(size=(2.0, 2.0, 2.0), spacing=0.04, hole=None):
         edge = np.minimum.reduce([np.abs(X - x0), np.abs(X - x1), np.abs(Y - y0), np.abs(Y - y1)])
         floor = np.where(inside, np.sqrt(edge ** 2 + Z ** 2), Z)
     udf = np.minimum.reduce([floor, X, size[0] - X, Y, size[1] - Y])
-    return {"origin": np.zeros(3), "spacing": spacing, "udf": udf.astype(np.float32)}
+    return room_from_arrays({"origin": np.zeros(3), "spacing": spacing, "udf": udf.astype(np.float32)})
 
 
 def _energy(model, state):
@@ -86,7 +87,7 @@ def test_build_model_rejects_bad_bodies():
     with pytest.raises(InputError, match="non-finite"):
         build_model([dataclasses.replace(good, com=np.array([np.nan, 0, 0]))])
     with pytest.raises(InputError, match="udf"):
-        build_model([good], room={"origin": np.zeros(3), "spacing": 0.1, "udf": np.zeros((4, 4))})
+        build_model([good], room=room_from_arrays({"origin": np.zeros(3), "spacing": 0.1, "udf": np.zeros((4, 4))}))
 
 
 def test_model_is_frozen_and_poses_round_trip():
@@ -495,7 +496,7 @@ def test_room_mesh_gives_exact_distance_normal_and_sheet_side():
     np.testing.assert_allclose(d, [0.0123, -0.004], atol=1e-6)
     np.testing.assert_allclose(nrm, [n, n], atol=1e-5)
     # the grid alone is off here by more than a millimetre somewhere along the sheet
-    m = build_model([sphere_body(0.01, 1.0)], room={k: room[k] for k in ("origin", "spacing", "udf")})
+    m = build_model([sphere_body(0.01, 1.0)], room=room_from_arrays({k: room[k] for k in ("origin", "spacing", "udf")}))
     t = np.linspace(-0.2, 0.2, 41)
     q = c + t[:, None] * u + 0.01 * n
     g, _ = room_distance(m, q)
@@ -504,7 +505,7 @@ def test_room_mesh_gives_exact_distance_normal_and_sheet_side():
 
 def test_box_rests_on_a_tilted_scanned_sheet_without_sinking():
     room, n, c = _tilted_sheet_room()
-    m = build_model([box_body([0.02] * 3, 0.2, friction=1.0)], room=room, room_thickness=0.01)
+    m = build_model([box_body([0.02] * 3, 0.2, friction=1.0)], room=room_from_arrays(room), room_thickness=0.01)
     R = np.array([[np.cos(np.radians(15)), 0, -np.sin(np.radians(15))], [0, 1, 0],
                   [np.sin(np.radians(15)), 0, np.cos(np.radians(15))]])
     s = make_state(m, R[None], (c + 0.04 * n)[None])
@@ -520,7 +521,7 @@ def test_fast_spinning_box_does_not_cross_a_scanned_sheet_with_a_thin_shell():
     from pipeline.physics.collide import world_vertices
 
     room, n, c = _tilted_sheet_room(deg=0.0)
-    m = build_model([box_body([0.02] * 3, 0.2, friction=1.0)], room=room, room_thickness=0.005)
+    m = build_model([box_body([0.02] * 3, 0.2, friction=1.0)], room=room_from_arrays(room), room_thickness=0.005)
     R = Rotation.from_euler("xyz", [[10, 20, 30]], degrees=True).as_matrix()
     s = make_state(m, R, (c + 0.3 * n)[None], vel=(-20.0 * n)[None], angvel=[[30.0, 15.0, 0]])
     lowest = np.inf
@@ -537,11 +538,11 @@ def test_exact_ccd_stops_a_sweep_the_grid_misses_and_lets_a_body_leave():
     from pipeline.physics.collide import world_vertices
 
     room, n, c = _tilted_sheet_room(deg=0.0)        # sheet at z = 7 mm, between grid nodes
-    grid = {k: room[k] for k in ("origin", "spacing", "udf")}
+    grid = room_from_arrays({k: room[k] for k in ("origin", "spacing", "udf")})
     q = np.array([[1.0, 0, 0, 0]])
     pos0, pos1 = np.array([[0, 0, 0.2]]), np.array([[0, 0, -0.2]])
     args = (pos0, q, pos1, q, np.array([[0, 0, -20.0]]), np.zeros((1, 3)))
-    exact = build_model([box_body([0.02] * 3, 0.1)], room=room, room_thickness=0.005)
+    exact = build_model([box_body([0.02] * 3, 0.1)], room=room_from_arrays(room), room_thickness=0.005)
     p, _, v, _, hit = _advance(exact, *args)
     assert hit[0] and v[0, 2] == 0.0
     low = float(np.min(world_vertices(exact, np.eye(3)[None], p)[0, :, 2])) - c[2]

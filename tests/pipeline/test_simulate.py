@@ -10,16 +10,22 @@ import pytest
 
 from pipeline.config import SimulateConfig
 from pipeline.errors import InputError, UserError
+from pipeline.physics.io import room_from_arrays
 from pipeline.runfolder import PLACEMENT_TPATH, load_placement, path, read_placement, save_placement
 from pipeline.simulate import simulate
 from pipeline.types import Placement
 
 
-def _room(size=1.6, spacing=0.04):
+def _room_arrays(size=1.6, spacing=0.04) -> dict:
+    """A room proxy's arrays: floor and four walls as a distance grid."""
     ax = np.arange(0, size + 1e-9, spacing)
     X, Y, Z = np.meshgrid(ax, ax, ax, indexing="ij")
     udf = np.minimum.reduce([Z, X, size - X, Y, size - Y]).astype(np.float32)
     return {"origin": np.zeros(3), "spacing": spacing, "udf": udf}
+
+
+def _room(size=1.6, spacing=0.04):
+    return room_from_arrays(_room_arrays(size, spacing))
 
 
 def _box_proxy(h, mass):
@@ -110,14 +116,14 @@ def test_room_cache_reloads_a_rewritten_proxy(tmp_path):
     from pipeline.simulate import _cached_room, _stamp
 
     path = tmp_path / "room_proxy.npz"
-    atomic_save_npz(path, **_room())
+    atomic_save_npz(path, **_room_arrays())
     up = (0.0, 0.0, 1.0)
     r1, i1 = _cached_room(_stamp(path), up)
     assert _cached_room(_stamp(path), up)[0] is r1           # same file: built once per process
-    atomic_save_npz(path, **_room(size=1.2))
+    atomic_save_npz(path, **_room_arrays(size=1.2))
     os.utime(path, ns=(1, 1))                                 # a different stamp even within one mtime tick
     r2, i2 = _cached_room(_stamp(path), up)
-    assert r2 is not r1 and r2["udf"].shape != r1["udf"].shape
+    assert r2 is not r1 and r2.udf.shape != r1.udf.shape
     # the info is rebuilt from the new file: its surface spans the smaller room (compared in the world
     # frame: the horizontal axes room_frame picks for a square room are arbitrary, so bounds in the room
     # frame of a 1.2 m square may exceed those of the 1.6 m one)
