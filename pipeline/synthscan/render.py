@@ -82,7 +82,10 @@ class RasterPhotoRenderer:
         self._depth = MeshRasterizer(znear=ZNEAR, zfar=ZFAR)   # the pipeline's rasterizer draws the depth
         self._depth.add_mesh("room", mesh.vertices, mesh.faces)
 
-    def _colour_meshes(self) -> list:
+    def _colour_mesh(self):
+        """The room as ONE pyrender mesh with a primitive per material: primitives are drawn in list order,
+        while separate meshes are drawn in the order of a set of nodes (it varies from process to process),
+        which decided z-ties between coincident surfaces differently in different runs."""
         pr, room, mesh = self._pr, self._room, self._mesh
         out = []
         face_mat = room.quad_material[mesh.face_quad]
@@ -102,16 +105,15 @@ class RasterPhotoRenderer:
                 positions=mesh.vertices[used].astype(np.float32), normals=mesh.normals[used],
                 texcoord_0=mesh.uv[used], color_0=colors,
                 indices=inv.reshape(-1, 3).astype(np.uint32), material=material, mode=4)
-            out.append(pr.Mesh([prim]))
-        return out
+            out.append(prim)
+        return pr.Mesh(out)
 
     def render_color(self, cam: Camera) -> np.ndarray:
         pr = self._pr
         view = self._views.get(cam.shape)
         if view is None:
             scene = pr.Scene(ambient_light=np.ones(3), bg_color=np.zeros(4))
-            for m in self._colour_meshes():
-                scene.add(m)
+            scene.add(self._colour_mesh())
             view = self._views[cam.shape] = [offscreen_renderer(cam.width, cam.height), scene, None]
         renderer, scene, cam_node = view
         fx, fy, cx, cy = cam.gl_intrinsics()
