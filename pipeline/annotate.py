@@ -41,28 +41,6 @@ def rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
-def poses_m2c(T_c2w: np.ndarray, R_m2w: np.ndarray, t_m2w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-from-model poses of N instances.
-
-    Parameters
-    ----------
-    T_c2w : (4, 4) float64
-        Camera-to-world, metres, OpenCV axes.
-    R_m2w : (N, 3, 3) float64
-    t_m2w : (N, 3) float64, metres
-
-    Returns
-    -------
-    R_m2c : (N, 3, 3) float64
-    t_m2c : (N, 3) float64, metres
-    """
-    T_w2c = np.linalg.inv(np.asarray(T_c2w, dtype=np.float64))
-    R_w2c, t_w2c = T_w2c[:3, :3], T_w2c[:3, 3]
-    R_m2c = np.einsum("ij,njk->nik", R_w2c, np.asarray(R_m2w, dtype=np.float64))
-    t_m2c = np.asarray(t_m2w, dtype=np.float64) @ R_w2c.T + t_w2c
-    return R_m2c, t_m2c
-
-
 def canvas(width: int, height: int) -> tuple[int, int, int, int]:
     """``(x0, y0, x1, y1)`` of the BOP counting canvas: the image plus one image size on every side."""
     return (-width, -height, 2 * width, 2 * height)

@@ -129,23 +129,7 @@ class Camera:
         object.__setattr__(self, "width", int(self.width))
         object.__setattr__(self, "height", int(self.height))
 
-    # --- intrinsics -------------------------------------------------------------------------------
-    @property
-    def fx(self) -> float:
-        return float(self.K[0, 0])
-
-    @property
-    def fy(self) -> float:
-        return float(self.K[1, 1])
-
-    @property
-    def cx(self) -> float:
-        return float(self.K[0, 2])
-
-    @property
-    def cy(self) -> float:
-        return float(self.K[1, 2])
-
+    # --- size and intrinsics ---------------------------------------------------------------------
     @property
     def shape(self) -> tuple[int, int]:
         """``(height, width)``, the shape of an image of this camera."""
@@ -190,13 +174,6 @@ class Camera:
         t_m2c = np.asarray(t_m2w, dtype=np.float64) @ R_w2c.T + t_w2c
         return R_m2c, t_m2c
 
-    def poses_m2w(self, R_m2c: np.ndarray, t_m2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World poses of N instances given camera-from-model ``R_m2c (N, 3, 3)``, ``t_m2c (N, 3)``."""
-        R = self.T_c2w[:3, :3]
-        R_m2w = np.einsum("ij,njk->nik", R, np.asarray(R_m2c, np.float64))
-        t_m2w = np.asarray(t_m2c, np.float64) @ R.T + self.T_c2w[:3, 3]
-        return R_m2w, t_m2w
-
     # --- projection -------------------------------------------------------------------------------
     def project_cam(self, points_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Camera-frame points (N, 3) -> image points and depths (see :func:`project_points`)."""
@@ -211,24 +188,7 @@ class Camera:
         """Image points ``(u, v)`` at camera depths ``z`` -> camera-frame points (see :func:`unproject_points`)."""
         return unproject_points(self.K, u, v, z)
 
-    def unproject_depth(self, depth: np.ndarray) -> np.ndarray:
-        """A depth map ``(H, W)`` metres -> camera-frame points ``(H, W, 3)`` float64 (0 depth -> origin)."""
-        H, W = depth.shape
-        v, u = np.mgrid[0:H, 0:W]
-        return self.unproject(u, v, depth)
-
-    def in_image(self, uv: np.ndarray) -> np.ndarray:
-        """(N,) bool: image points whose nearest pixel lies inside the image."""
-        u, v = uv[:, 0], uv[:, 1]
-        return (u > -0.5) & (u < self.width - 0.5) & (v > -0.5) & (v < self.height - 0.5)
-
     # --- rays -------------------------------------------------------------------------------------
-    def pixel_dirs_cam(self) -> np.ndarray:
-        """(H * W, 3) float64 camera-frame directions through every pixel centre, row-major, with
-        camera-z component 1 (a ray parameter ``t`` along them is the depth)."""
-        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
-        return (np.linalg.inv(self.K) @ np.stack([u.ravel(), v.ravel(), np.ones(u.size)])).T
-
     def rays(self, pixels: np.ndarray, jitter: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """World-space rays through flat pixel indices ``pixels (R,)`` at offsets ``jitter (R, 2)`` in
         [0, 1): the ray goes through image point ``(x + jx - 0.5, y + jy - 0.5)``.

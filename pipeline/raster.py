@@ -51,7 +51,7 @@ from pipeline.config import RasterConfig
 from pipeline.errors import InputError
 from pipeline.io import atomic_save_npz, atomic_write_json, load_npz, read_json
 from pipeline import runfolder
-from pipeline.camera import scaled_intrinsics
+from pipeline.camera import Camera, scaled_intrinsics
 from pipeline.runfolder import (RASTER_TPATH, REAL_DEPTH_TPATH, SCENE_DEPTH_TPATH, FrameKey, frames_to_render,
                                 list_scenes, load_objects, load_placement, load_room_mesh, load_scan,
                                 simulated_drops)
@@ -189,7 +189,7 @@ def render_frame(rasterizer, *, K: np.ndarray, T_c2w: np.ndarray, width: int, he
     T_c2w = np.asarray(T_c2w, dtype=np.float64)
     n = len(placement.obj_ids)
     area = float(width * height)
-    R_m2c, t_m2c = annotate.poses_m2c(T_c2w, placement.R_m2w, placement.t_m2w)
+    R_m2c, t_m2c = Camera(K=K, T_c2w=T_c2w, width=width, height=height).poses_m2c(placement.R_m2w, placement.t_m2w)
     base = dict(width=width, height=height, K=K, T_c2w=T_c2w)
 
     def reject(check: str, reason: str, **extra) -> FrameResult:

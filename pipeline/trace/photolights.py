@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.color import LUMINANCE, srgb_to_linear
+from pipeline.color import LUMINANCE, exposure_ratio, srgb_to_linear
 from pipeline.trace.lights import ENV_H, ENV_W, env_bin
 
 log = logging.getLogger(__name__)
@@ -281,7 +281,7 @@ def frame_exposure(scene, cam, photo: np.ndarray, *, radiance_scale: float = 1.0
     Parameters
     ----------
     scene : :class:`~pipeline.trace.scene.TraceScene` (room triangles have ``tri_inst == 0``)
-    cam : :class:`~pipeline.trace.pbr.Camera` of the photo (its resolution)
+    cam : :class:`~pipeline.camera.Camera` of the photo (its resolution)
     photo : (H, W, 3) uint8 sRGB
     radiance_scale : the trace stage's ``radiance_scale``
     threshold : clipped photo pixels (every channel >= this) are left out
@@ -310,9 +310,5 @@ def frame_exposure(scene, cam, photo: np.ndarray, *, radiance_scale: float = 1.0
     a, b = hits.u[ok][:, None], hits.v[ok][:, None]
     E = scene.emission
     mesh = ((1 - a - b) * E[fr[:, 0]] + a * E[fr[:, 1]] + b * E[fr[:, 2]]) @ LUMINANCE / np.float32(radiance_scale)
-    lum = srgb_to_linear(col[ok]) @ LUMINANCE
-    good = (mesh > 0.02) & (lum > 0.02)
-    if good.sum() < MIN_EXPOSURE_SAMPLES:
-        return 1.0
-    ratio = float(np.exp(np.median(np.log(lum[good] / mesh[good]))))
-    return float(np.clip(ratio, *EXPOSURE_RANGE))
+    ratio = exposure_ratio(srgb_to_linear(col[ok]) @ LUMINANCE, mesh, floor=0.02, min_samples=MIN_EXPOSURE_SAMPLES)
+    return 1.0 if ratio is None else float(np.clip(ratio, *EXPOSURE_RANGE))

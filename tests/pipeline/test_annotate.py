@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from pipeline import annotate
+from pipeline.camera import Camera
 
 
 def test_poses_m2c_composes_rigid_transforms():
@@ -16,7 +17,7 @@ def test_poses_m2c_composes_rigid_transforms():
     T_c2w = annotate.rigid(R_c2w, [1.0, 2.0, 3.0])
     R_m2w = Rotation.random(3, random_state=2).as_matrix()
     t_m2w = rng.normal(size=(3, 3))
-    R, t = annotate.poses_m2c(T_c2w, R_m2w, t_m2w)
+    R, t = Camera(K=np.eye(3), T_c2w=T_c2w, width=1, height=1).poses_m2c(R_m2w, t_m2w)
     p_m = rng.normal(size=3)
     for i in range(3):
         p_w = R_m2w[i] @ p_m + t_m2w[i]

@@ -77,7 +77,7 @@ def test_scaled_keeps_pixel_centres_and_gl_camera_flips_axes():
     G = cam.gl_pose()
     np.testing.assert_array_equal(G[:3, 1], -cam.T_c2w[:3, 1])   # OpenGL y up = -OpenCV y
     np.testing.assert_array_equal(G[:3, 2], -cam.T_c2w[:3, 2])   # OpenGL looks down -z
-    assert cam.gl_intrinsics(3, 4)[2:] == (cam.cx - 3 + 0.5, cam.cy - 4 + 0.5)
+    assert cam.gl_intrinsics(3, 4)[2:] == (cam.K[0, 2] - 3 + 0.5, cam.K[1, 2] - 4 + 0.5)
 
 
 def test_rig_places_the_depth_camera_by_its_offset():
