@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["LUMINANCE", "LUMINANCE_F64", "srgb_to_linear", "linear_to_srgb", "decode_u8", "encode_u8", "luminance",
+__all__ = ["LUMINANCE", "LUMINANCE_F64", "srgb_to_linear", "linear_to_srgb", "decode_u8", "encode_u8",
            "exposure_ratio"]
 
 LUMINANCE_F64 = np.array([0.2126, 0.7152, 0.0722])   # Rec. 709 luminance weights, linear RGB
@@ -61,12 +61,6 @@ def decode_u8(image: np.ndarray) -> np.ndarray:
 def encode_u8(linear: np.ndarray) -> np.ndarray:
     """Linear values -> uint8 sRGB codes, rounded to nearest (the inverse of :func:`decode_u8`)."""
     return np.round(linear_to_srgb(linear) * 255.0).astype(np.uint8)
-
-
-def luminance(rgb: np.ndarray) -> np.ndarray:
-    """Rec. 709 luminance ``(...,)`` of linear RGB ``(..., 3)``, in the input's float precision."""
-    rgb = np.asarray(rgb)
-    return rgb @ LUMINANCE.astype(rgb.dtype if np.issubdtype(rgb.dtype, np.floating) else np.float32)
 
 
 def exposure_ratio(photo_lum: np.ndarray, reference_lum: np.ndarray, *, floor: float = 0.02,

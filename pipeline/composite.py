@@ -298,32 +298,6 @@ def composite_full(photo: np.ndarray, pbr: np.ndarray, coverage: np.ndarray, sha
                      photo_noise=float(noise_sigma), noise_added=float(noise_added))
 
 
-def composite_depth(labels: np.ndarray, object_depth: np.ndarray, real_depth: np.ndarray | None,
-                    room_depth: np.ndarray | None = None) -> np.ndarray:
-    """Depth of the composite: the objects' depth where visible, the real depth elsewhere.
-
-    Parameters
-    ----------
-    labels : (H, W) uint16 visible instance labels
-    object_depth : (H, W) float32 metres, nearest object depth
-    real_depth : (H, W) float32 metres, 0 = invalid; None = no sensor depth
-    room_depth : (H, W) float32 metres or None; when given it fills invalid real depth
-
-    Returns
-    -------
-    (H, W) float32 metres, 0 = invalid; never NaN.
-    """
-    from pipeline.annotate import compose_depth
-
-    bg = None if real_depth is None else np.nan_to_num(np.asarray(real_depth, np.float32), nan=0.0,
-                                                        posinf=0.0, neginf=0.0)
-    if room_depth is not None:
-        room = np.nan_to_num(np.asarray(room_depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-        bg = room if bg is None else np.where(bg > 0, bg, room)
-    d = np.nan_to_num(np.asarray(object_depth, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    return np.maximum(compose_depth(np.asarray(labels), d, bg), 0.0).astype(np.float32)
-
-
 # ---------------------------------------------------------------------------------------------------
 # Stage
 # ---------------------------------------------------------------------------------------------------

@@ -62,6 +62,16 @@ def path(run_dir: str | Path, tpath: str, **fields) -> Path:
     return Path(run_dir) / tpath.format(**fields)
 
 
+def file_stamp(p: Path) -> tuple[str, int, int]:
+    """(path, mtime ns, size) of a file, or (path, -1, -1) when it is missing: the key of a per-process
+    cache of what is read from it, which changes when the file is rewritten."""
+    try:
+        st = p.stat()
+    except FileNotFoundError:
+        return str(p), -1, -1
+    return str(p), st.st_mtime_ns, st.st_size
+
+
 class FrameKey(NamedTuple):
     """One frame of one drop of one scene: the unit raster, trace, composite and export work on (a tuple, so
     it sorts and unpacks as ``(scene, drop, frame)``)."""
@@ -197,11 +207,6 @@ def _load_proxy(p: Path) -> dict[str, np.ndarray]:
         raise UserError(f"{p}: {'room' if 'room' in p.name else 'object'} proxy is missing; run the 'prep' "
                         f"stage first")
     return load_npz(p)
-
-
-def load_room_proxy(run_dir: str | Path, scene: str) -> dict[str, np.ndarray]:
-    """The room proxy NPZ of ``scene`` as a dict of arrays."""
-    return _load_proxy(path(run_dir, ROOM_PROXY_TPATH, scene=scene))
 
 
 def load_object_proxy(run_dir: str | Path, obj_id: int) -> dict[str, np.ndarray]:

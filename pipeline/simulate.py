@@ -17,8 +17,9 @@ import numpy as np
 from pipeline.config import SimulateConfig
 from pipeline.errors import InputError, UserError
 from pipeline.io import atomic_write_json
-from pipeline.runfolder import (DROP_TPATH, PLACEMENT_TPATH, ROOM_PROXY_TPATH, SELECTION_TPATH, list_scenes,
-                                load_object_proxy, load_objects, load_scan, load_selection, path, save_placement)
+from pipeline.runfolder import (DROP_TPATH, PLACEMENT_TPATH, ROOM_PROXY_TPATH, SELECTION_TPATH, file_stamp,
+                                list_scenes, load_object_proxy, load_objects, load_scan, load_selection, path,
+                                save_placement)
 from pipeline.runner import Item, Stage, StageContext
 from pipeline.types import Placement
 
@@ -112,16 +113,6 @@ def plan(ctx: StageContext) -> list[Item]:
             for s in list_scenes(ctx.run_dir) for d in range(ctx.cfg.simulate.drops)]
 
 
-def _stamp(path: Path) -> tuple[str, int, int]:
-    """(path, mtime ns, size) of a file, or (path, -1, -1) when it is missing: a cache key that changes
-    when the file is rewritten."""
-    try:
-        st = path.stat()
-    except FileNotFoundError:
-        return str(path), -1, -1
-    return str(path), st.st_mtime_ns, st.st_size
-
-
 @functools.lru_cache(maxsize=2)
 def _cached_room(stamp: tuple[str, int, int], up: tuple[float, float, float]):
     """The :class:`~pipeline.physics.types.Room` of a room proxy file (its exact-distance mesh built) and
@@ -150,9 +141,9 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     if not proxy.is_file():
         raise UserError(f"{proxy}: room proxy is missing; run the 'prep' stage first")
     up = tuple(float(v) for v in np.asarray(scan.up_w, float))
-    room, info = _cached_room(_stamp(proxy), up)
-    selection = _stamp(path(ctx.run_dir, SELECTION_TPATH, scene=scene))
-    view = _cached_view_map(str(ctx.run_dir), scene, selection, _stamp(proxy), up)
+    room, info = _cached_room(file_stamp(proxy), up)
+    selection = file_stamp(path(ctx.run_dir, SELECTION_TPATH, scene=scene))
+    view = _cached_view_map(str(ctx.run_dir), scene, selection, file_stamp(proxy), up)
     proxies = {o.obj_id: load_object_proxy(ctx.run_dir, o.obj_id) for o in load_objects(ctx.run_dir)}
     if not proxies:
         raise InputError("the object library is empty; give objects.paths in the config")

@@ -93,28 +93,6 @@ def sphere_body(radius: float, mass: float, *, friction: float = -1.0) -> Body:
                 inertia=np.eye(3) * 0.4 * mass * radius ** 2, friction=friction, radius=radius)
 
 
-def mesh_body(vertices: np.ndarray, faces: np.ndarray, *, density: float = 500.0,
-              friction: float = -1.0) -> Body:
-    """A body with the mass properties of the convex hull of a mesh (used until meshprep's solids).
-
-    Parameters
-    ----------
-    vertices
-        (V, 3) float64, m.
-    faces
-        (T, 3) int; only used for nothing but shape checks (the hull is what collides).
-    density
-        kg/m^3.
-    """
-    import trimesh
-
-    hull = trimesh.Trimesh(np.asarray(vertices, float), np.asarray(faces)).convex_hull
-    mp = hull.mass_properties
-    mass = float(mp["volume"]) * density
-    return Body(vertices=np.asarray(hull.vertices, float), mass=mass, com=np.asarray(mp["center_mass"]),
-                inertia=np.asarray(mp["inertia"]) * density, friction=friction)
-
-
 # ---------------------------------------------------------------------------------------------------
 # Validation at the boundary
 # ---------------------------------------------------------------------------------------------------

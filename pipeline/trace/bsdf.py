@@ -119,11 +119,6 @@ def sample_prepared(L: Lobes, wo: np.ndarray, u_lobe: np.ndarray, u1: np.ndarray
     return wi, f, pdf
 
 
-def spec_probability(mat: Material, wo_z: np.ndarray) -> np.ndarray:
-    """(R,) probability of sampling the specular lobe, proportional to each lobe's rough weight."""
-    return prepare(mat, wo_z).p_spec
-
-
 def eval_f_cos(wo: np.ndarray, wi: np.ndarray, mat: Material) -> np.ndarray:
     """``f(wo, wi) cos(theta_i)``, (R, 3); 0 when either direction is below the surface."""
     return eval_pdf(prepare(mat, wo[:, 2]), wo, wi)[0]

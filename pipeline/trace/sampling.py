@@ -52,13 +52,6 @@ def to_world(local: np.ndarray, n: np.ndarray) -> np.ndarray:
     return local[:, :1] * t + local[:, 1:2] * b + local[:, 2:3] * n
 
 
-def to_local(w: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """World directions to the local frame of ``n``: (R, 3) -> (R, 3)."""
-    t, b = orthonormal_basis(n)
-    return np.stack([np.einsum("ij,ij->i", w, t), np.einsum("ij,ij->i", w, b),
-                     np.einsum("ij,ij->i", w, n)], axis=1)
-
-
 def cosine_hemisphere(u1: np.ndarray, u2: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Cosine-weighted directions about +z from uniforms ``u1, u2 (R,)`` in [0, 1).
 

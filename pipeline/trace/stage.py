@@ -33,7 +33,8 @@ from pipeline.config import TraceConfig
 from pipeline.errors import InputError
 from pipeline.io import atomic_save_npz, load_npz
 from pipeline.runfolder import (DROP_TPATH, FRAMES_TPATH, SCAN_TPATH, TRACE_TPATH, FrameKey, RasterFrame,
-                                load_objects, load_raster_frame, load_scan, path, raster_frames, room_trace_mesh)
+                                file_stamp, load_objects, load_raster_frame, load_scan, path, raster_frames,
+                                room_trace_mesh)
 from pipeline.runner import Item, Stage, StageContext
 from pipeline.scanformats.common import read_color
 
@@ -117,11 +118,6 @@ def trace_frame(ctx: StageContext, scene, rf: RasterFrame, labels: np.ndarray, *
             "shadow_px": int((sr != 1.0).sum())}
 
 
-def _stamp(path: Path) -> tuple[str, int, int]:
-    st = path.stat()
-    return str(path), st.st_mtime_ns, st.st_size
-
-
 @functools.lru_cache(maxsize=2)
 def _room(run_dir: str, scene_name: str, cfg: TraceConfig, seed: int, stamps: tuple) -> tuple:
     """``(scan, room vertices, faces, colours, light_vertices, env_map)`` of a scene, read-only arrays.
@@ -153,7 +149,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     scene_name, drop = item.data["scene"], int(item.data["drop"])
     frames = [int(f) for f in item.data["frames"]]
     scan = load_scan(ctx.run_dir, scene_name)
-    stamps = tuple(_stamp(p) for p in (path(ctx.run_dir, SCAN_TPATH, scene=scene_name),
+    stamps = tuple(file_stamp(p) for p in (path(ctx.run_dir, SCAN_TPATH, scene=scene_name),
                                        path(ctx.run_dir, FRAMES_TPATH, scene=scene_name),
                                        Path(room_trace_mesh(ctx.run_dir, scan, cfg.room_mesh))) if p.is_file())
     scan, rv, rf, rc, light_v, env_map = _room(str(ctx.run_dir), scene_name, cfg, ctx.cfg.run.seed, stamps)

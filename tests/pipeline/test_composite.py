@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pipeline import camera_look as cl, color
-from pipeline.composite import composite_depth, composite_full, composite_published, unpremultiply
+from pipeline.composite import composite_full, composite_published, unpremultiply
 from pipeline.runfolder import COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, FrameKey
 
 H, W = 60, 80
@@ -254,26 +254,6 @@ def test_unpremultiply_fills_uncovered_mask_pixels_from_neighbours():
     col = unpremultiply(pbr2, cov2, np.zeros((H, W, 3), np.float32))
     assert np.allclose(col[30, 40], [0.5, 0.2, 0.1], atol=1e-5)
     assert np.allclose(col[0, 0], 0.0)
-
-
-# --------------------------------------------------------------------------------------------------
-# Depth
-# --------------------------------------------------------------------------------------------------
-
-def test_depth_is_real_depth_with_visible_object_depth_even_when_real_depth_is_mostly_invalid():
-    _, _, labels, _ = _frame()
-    obj = np.where(labels > 0, 1.25, 0.0).astype(np.float32)
-    real = np.zeros((H, W), np.float32)
-    real[:5] = 2.0
-    real[6, 6] = np.nan
-    d = composite_depth(labels, obj, real)
-    assert np.isfinite(d).all() and d.dtype == np.float32
-    assert (d[labels > 0] == 1.25).all() and (d[:5][labels[:5] == 0] == 2.0).all()
-    assert (d[10:][labels[10:] == 0] == 0).all()
-    room = np.full((H, W), 3.0, np.float32)
-    filled = composite_depth(labels, obj, real, room)
-    assert (filled[10:][labels[10:] == 0] == 3.0).all() and (filled[:5][labels[:5] == 0] == 2.0).all()
-    assert (composite_depth(labels, obj, None)[labels == 0] == 0).all()
 
 
 # --------------------------------------------------------------------------------------------------

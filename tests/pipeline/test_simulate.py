@@ -113,16 +113,17 @@ def test_room_cache_reloads_a_rewritten_proxy(tmp_path):
     import os
 
     from pipeline.io import atomic_save_npz
-    from pipeline.simulate import _cached_room, _stamp
+    from pipeline.runfolder import file_stamp
+    from pipeline.simulate import _cached_room
 
     path = tmp_path / "room_proxy.npz"
     atomic_save_npz(path, **_room_arrays())
     up = (0.0, 0.0, 1.0)
-    r1, i1 = _cached_room(_stamp(path), up)
-    assert _cached_room(_stamp(path), up)[0] is r1           # same file: built once per process
+    r1, i1 = _cached_room(file_stamp(path), up)
+    assert _cached_room(file_stamp(path), up)[0] is r1           # same file: built once per process
     atomic_save_npz(path, **_room_arrays(size=1.2))
     os.utime(path, ns=(1, 1))                                 # a different stamp even within one mtime tick
-    r2, i2 = _cached_room(_stamp(path), up)
+    r2, i2 = _cached_room(file_stamp(path), up)
     assert r2 is not r1 and r2.udf.shape != r1.udf.shape
     # the info is rebuilt from the new file: its surface spans the smaller room (compared in the world
     # frame: the horizontal axes room_frame picks for a square room are arbitrary, so bounds in the room
