@@ -7,6 +7,14 @@ import math
 import numpy as np
 
 
+def nearest_rotation(R: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """The rotation nearest to ``R (3, 3)`` in the Frobenius norm (SVD, ``U V^T``), with how far ``R`` was
+    from one: ``(rotation, max |R^T R - I|, det R)``. A reflection (det < 0) stays one: check ``det``."""
+    R = np.asarray(R, np.float64)
+    U, _, Vt = np.linalg.svd(R)
+    return U @ Vt, float(np.abs(R.T @ R - np.eye(3)).max()), float(np.linalg.det(R))
+
+
 def look_at(eye, target, up=(0.0, 0.0, 1.0), roll: float = 0.0) -> np.ndarray:
     """(4, 4) float64 camera-to-world pose at ``eye`` looking at ``target``, OpenCV camera axes.
 

@@ -46,12 +46,12 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from pipeline import annotate
+from pipeline import annotate, runfolder
+from pipeline.camera import Camera, scaled_intrinsics
 from pipeline.config import RasterConfig
 from pipeline.errors import InputError
+from pipeline.geometry import nearest_rotation
 from pipeline.io import atomic_save_npz, atomic_write_json, load_npz, read_json
-from pipeline import runfolder
-from pipeline.camera import Camera, scaled_intrinsics
 from pipeline.runfolder import (RASTER_TPATH, REAL_DEPTH_TPATH, SCENE_DEPTH_TPATH, FrameKey, frames_to_render,
                                 list_scenes, load_objects, load_placement, load_room_mesh, load_scan,
                                 simulated_drops)
@@ -349,11 +349,15 @@ def load_poses_file(path: str | Path, *, obj_ids: Sequence[int] | None = None,
                 raise InputError(f"{path}: {w}: obj_id {oid!r} is not in the object library "
                                  f"(ids: {', '.join(map(str, obj_ids or []))})")
             R = _matrix(path, f"{w} R_m2w", inst["R_m2w"], (3, 3))
-            err = float(np.abs(R.T @ R - np.eye(3)).max())
-            det = float(np.linalg.det(R))
+            Rn, err, det = nearest_rotation(R)
             if err > POSE_ORTHONORMAL_TOL or abs(det - 1.0) > POSE_ORTHONORMAL_TOL:
                 raise InputError(f"{path}: {w}: R_m2w is not a rotation (|R^T R - I| = {err:.2e}, "
-                                 f"det = {det:.4f}); give an orthonormal matrix with det +1")
+                                 f"det = {det:.4f}; up to {POSE_ORTHONORMAL_TOL:g} is re-orthonormalised); give "
+                                 f"an orthonormal matrix with det +1")
+            if err > 1e-9:   # an annotation's rounding: use the nearest rotation, and say so
+                log.warning("%s: %s: R_m2w is orthonormal to %.1e only; using the nearest rotation (SVD)",
+                            path, w, err)
+                R = Rn
             ids.append(oid)
             Rs.append(R)
             ts.append(_matrix(path, f"{w} t_m2w", inst["t_m2w"], (3,)))

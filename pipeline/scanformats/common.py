@@ -32,6 +32,7 @@ import numpy as np
 
 from pipeline.camera import image_plane, project_points, transform_points, unproject_points
 from pipeline.errors import InputError
+from pipeline.geometry import nearest_rotation
 from pipeline.tolerances import POSE_ORTHONORMAL_TOL
 from pipeline.types import Scan
 
@@ -88,17 +89,14 @@ def check_pose(T: np.ndarray, path: Path | str) -> np.ndarray | None:
     T = np.asarray(T, dtype=np.float64)
     if not np.all(np.isfinite(T)):
         return None
-    R = T[:3, :3]
-    det = float(np.linalg.det(R))
-    orth = float(np.abs(R.T @ R - np.eye(3)).max())
+    R, orth, det = nearest_rotation(T[:3, :3])
     if abs(det - 1.0) > POSE_ORTHONORMAL_TOL or orth > POSE_ORTHONORMAL_TOL or \
             np.abs(T[3] - [0, 0, 0, 1]).max() > POSE_ORTHONORMAL_TOL:
         raise InputError(f"{path}: pose is not a rigid transform (det R = {det:.4f}, |R^T R - I| = {orth:.2e}, "
                          f"last row {T[3].tolist()}); a camera-to-world pose needs an orthonormal rotation "
                          f"with det 1 and last row 0 0 0 1: fix or delete this pose file")
-    U, _, Vt = np.linalg.svd(R)
     out = T.copy()
-    out[:3, :3] = U @ Vt
+    out[:3, :3] = R
     out[3] = [0.0, 0.0, 0.0, 1.0]
     return out
 

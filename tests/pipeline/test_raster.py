@@ -287,6 +287,31 @@ def test_poses_file_roundtrip(tmp_path):
     assert e1.frames is None and e1.placement.drop == 0
 
 
+def test_poses_file_takes_an_annotation_rounded_rotation_as_the_nearest_rotation(tmp_path, caplog):
+    """A BOP ground-truth rotation is orthonormal to ~2e-3 only: it is used as the nearest rotation, with
+    a warning; one 5 % off (a scale) is refused."""
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_euler("xyz", [20, -35, 60], degrees=True).as_matrix()
+    rounded = np.round(R, 3)                                   # BOP writes 3 to 6 digits; 3 gives ~1e-3
+    rounded[0, 0] += 1e-3                                      # and a little more
+    assert 1e-3 < np.abs(rounded.T @ rounded - np.eye(3)).max() < 1e-2
+    d = {"scene": "kitchen", "drop": 0, "instances": [{"obj_id": 1, "R_m2w": rounded.tolist(), "t_m2w": [0, 0, 1]}]}
+    p = tmp_path / "poses.json"
+    p.write_text(json.dumps(d))
+    with caplog.at_level("WARNING", logger="pipeline.raster"):
+        (e,) = load_poses_file(p, obj_ids=[1], scenes=["kitchen"])
+    Rn = e.placement.R_m2w[0]
+    np.testing.assert_allclose(Rn.T @ Rn, np.eye(3), atol=1e-12)
+    assert np.linalg.det(Rn) == pytest.approx(1.0, abs=1e-12)
+    assert np.degrees((Rotation.from_matrix(Rn).inv() * Rotation.from_matrix(R)).magnitude()) < 0.2
+    assert "nearest rotation" in caplog.text and str(p) in caplog.text
+    d["instances"][0]["R_m2w"] = (1.05 * R).tolist()
+    p.write_text(json.dumps(d))
+    with pytest.raises(InputError, match="not a rotation"):
+        load_poses_file(p, obj_ids=[1], scenes=["kitchen"])
+
+
 @pytest.mark.parametrize("mutate, match", [
     (lambda d: d["instances"][0].update(R_m2w=(2 * np.eye(3)).tolist()), "not a rotation"),
     (lambda d: d["instances"][0].update(obj_id=99), "obj_id 99 is not in the object library"),
