@@ -33,7 +33,7 @@ from pipeline.io import atomic_write_bytes
 from pipeline.runfolder import RESERVED_SCENES, ROOM_PLY, builtin_scan_dir, save_scan
 from pipeline.runner import INPUT_PROBLEMS, Item, Stage, StageContext
 from pipeline.scanformats.common import BadFrameWarning, IngestWarning, read_color, select_frames, subsample
-from pipeline.scanformats.mesh import canonical_order, check_mesh_covers_cameras, load_mesh_file, ply_bytes
+from pipeline.scanformats.mesh import canonical_order, check_mesh_seen_by_cameras, load_mesh_file, ply_bytes
 from pipeline.types import Scan
 
 log = logging.getLogger(__name__)
@@ -78,7 +78,6 @@ def room_mesh_for(scan: Scan, cfg: Config) -> tuple[np.ndarray, np.ndarray, np.n
     and a note saying where it came from.
     """
     src = cfg.scan.mesh or scan.mesh_path
-    cams = scan.T_c2w[:, :3, 3]
     if src:
         try:
             V, F, C = load_mesh_file(src)
@@ -89,7 +88,7 @@ def room_mesh_for(scan: Scan, cfg: Config) -> tuple[np.ndarray, np.ndarray, np.n
                 raise
             log.info("%s is not a triangle mesh; reconstructing from depth", src)
         else:
-            check_mesh_covers_cameras(V, cams, src)
+            check_mesh_seen_by_cameras(V, [scan.camera(i) for i in range(scan.num_frames)], src)
             V, F, C = canonical_order(V, F, C)
             return V, F, C, f"converted from {src}"
     if not any(scan.depth_paths):

@@ -28,10 +28,12 @@ RASTER_DEPTH_MEDIAN_M = 1e-3
 # "textureless" and never used as a sharpness reference. 2 levels is just above 8-bit sensor noise.
 SELECT_TEXTURELESS_STD = 2.0
 
-# Ingest: a room mesh whose bounding box, grown by this margin, contains none of the camera centres is
-# in other units or another frame (cameras of a room scan are inside the room; the margin absorbs a
-# scan mesh that stops short of where the operator stood, e.g. an open side of the room).
-MESH_CAMERA_MARGIN_M = 0.5
+# Ingest: a scan mesh is in the poses' units and frame when some camera sees at least this share of its
+# vertices in its image within this range of depths (metres). A room scan's cameras see 20-60 % of the
+# room each; a tabletop or one-view capture need not enclose its cameras but is seen by them; a mesh in
+# millimetres (1000x too far) or another frame is seen by none.
+MESH_SEEN_MIN_SHARE = 0.01
+MESH_SEEN_DEPTH_M = (0.05, 50.0)
 
 # Ingest: object models whose diameter falls outside this range (metres) after unit conversion get a
 # warning naming the assumed unit (a 1 mm or 10 m "object" almost always means a wrong unit).

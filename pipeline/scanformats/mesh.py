@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import InputError
-from pipeline.tolerances import MESH_CAMERA_MARGIN_M
+from pipeline.camera import Camera
+from pipeline.tolerances import MESH_SEEN_DEPTH_M, MESH_SEEN_MIN_SHARE
 
 
 def ply_bytes(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None) -> bytes:
@@ -113,25 +114,32 @@ def load_mesh_file(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray
     return verts, faces.astype(np.int32), colors
 
 
-def check_mesh_covers_cameras(vertices: np.ndarray, cam_pos: np.ndarray, path: str | Path,
-                              margin: float = MESH_CAMERA_MARGIN_M) -> None:
-    """InputError when no camera lies within the mesh's bounding box grown by ``margin`` metres.
+def check_mesh_seen_by_cameras(vertices: np.ndarray, cameras: list[Camera], path: str | Path) -> None:
+    """InputError when no camera sees the mesh: fewer than :data:`MESH_SEEN_MIN_SHARE` of (a sample of) its
+    vertices project into some camera's image at a plausible distance (:data:`MESH_SEEN_DEPTH_M`).
 
-    A room scan's cameras are inside the room; a mesh far from them is in other units or another frame.
+    A mesh need not surround its cameras (a table captured from one side, a single frame's depth), but it
+    must be in front of them: one that is not is in other units or another frame than the poses.
     """
-    lo, hi = vertices.min(0) - margin, vertices.max(0) + margin
-    inside = np.all((cam_pos >= lo) & (cam_pos <= hi), axis=1)
-    if inside.any():
-        return
-    ext = float(np.max(vertices.max(0) - vertices.min(0)))
-    hint = ""
-    if ext > 100:
-        hint = " It spans {:.0f} units: millimetres? ".format(ext)
-    raise InputError(f"{path}: the mesh's bounding box {np.round(vertices.min(0), 3).tolist()} .. "
-                     f"{np.round(vertices.max(0), 3).tolist()} contains none of the {len(cam_pos)} camera "
-                     f"positions (e.g. {np.round(cam_pos[0], 3).tolist()}), so it is in other units or another "
-                     f"frame than the poses.{hint} Convert the mesh to metres in the scan's world frame, or "
-                     f"remove it to reconstruct from depth")
+    V = np.asarray(vertices, np.float64)
+    V = V[:: max(1, len(V) // 20000)]
+    near, far = MESH_SEEN_DEPTH_M
+    best = 0.0
+    for cam in cameras[:: max(1, len(cameras) // 50)]:
+        uv, z = cam.project(V)
+        seen = (z > near) & (z < far) & (uv[:, 0] > -0.5) & (uv[:, 0] < cam.width - 0.5) & \
+            (uv[:, 1] > -0.5) & (uv[:, 1] < cam.height - 0.5)
+        best = max(best, float(seen.mean()) if len(V) else 0.0)
+        if best >= MESH_SEEN_MIN_SHARE:
+            return
+    ext = float(np.max(V.max(0) - V.min(0))) if len(V) else 0.0
+    hint = " It spans {:.0f} units: millimetres? ".format(ext) if ext > 100 else ""
+    raise InputError(f"{path}: no camera sees the mesh (at most {best:.1%} of its vertices project into an image "
+                     f"{near}-{far:g} m in front of one of the {len(cameras)} cameras; its bounding box is "
+                     f"{np.round(V.min(0), 3).tolist()} .. {np.round(V.max(0), 3).tolist()}, e.g. camera at "
+                     f"{np.round(cameras[0].center, 3).tolist()}), so it is in other units or another frame than "
+                     f"the poses.{hint} Convert the mesh to metres in the scan's world frame, or remove it to "
+                     f"reconstruct from depth")
 
 
 def canonical_order(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None
