@@ -213,10 +213,10 @@ class TraceConfig:
     shadow_min_effect: float = option(0.04, "shadow ratio traced only where objects can change the light by "
                                       "more than this share (a loose bound: on 7-Scenes the true change left "
                                       "out at 0.04 has p99 0.8 %)", min=0.0, min_exclusive=True, max=1.0)
-    shadow_stride: int = option(2, "shadow ratio traced on every n-th pixel in x and y, then interpolated",
-                                min=1)
-    shadow_smooth: float = option(1.0, "Gaussian smoothing of the shadow ratio (sigma, traced-grid pixels; "
-                                  "0 = none)", min=0.0)
+    shadow_stride: int = option(2, "shadow ratio traced on every n-th pixel in x and y away from the objects "
+                                "(every pixel within 3 px of them), then interpolated", min=1)
+    shadow_smooth: float = option(1.0, "Gaussian smoothing of the shadow ratio away from the objects (sigma, "
+                                  "traced-grid pixels; 0 = none)", min=0.0)
     room_mesh: str = option("prep", "room mesh traced: prep = RUN/prep/<scene>/room_trace.ply when present "
                             "(simplified by geometry only: flat coloured detail such as windows may merge), "
                             "ingest = the full reconstructed mesh", choices=("prep", "ingest"))

@@ -15,6 +15,14 @@ is 1 where the objects change nothing. It is traced only where it can differ fro
 ``min_effect``: points whose distance ``d`` to an object's bounding sphere centre satisfies
 ``(r / d)^2 >= min_effect`` (``(r / d)^2`` bounds the cosine-weighted share of the hemisphere a sphere
 of radius ``r`` can cover).
+
+Resolution: away from the objects the ratio is traced on a ``stride`` grid and smoothed; within
+:data:`CONTACT_BAND_PX` pixels of them, where an object meets the surface it rests on, every pixel is
+traced (twice the rays) and smoothed over about a pixel, so the dark contact line keeps its strength.
+Smoothing is a normalised convolution over room samples only (object pixels are not samples: they used
+to be written as 1 before smoothing and diluted the contact shadow), and ``E0``, which changes slowly,
+is averaged over :data:`E0_SMOOTH_PX` before the ratio is formed, so its sampling noise does not scale
+the objects' effect.
 """
 
 from __future__ import annotations
@@ -30,6 +38,10 @@ from pipeline.trace.sampling import cosine_hemisphere, to_world
 from pipeline.trace.scene import TraceScene
 
 log = logging.getLogger(__name__)
+
+CONTACT_BAND_PX = 3       # pixels around the objects traced at full resolution (see :func:`shadow_ratio`)
+CONTACT_SMOOTH_PX = 1.5   # Gaussian sigma (pixels) of the ratio in that band
+E0_SMOOTH_PX = 4.0        # Gaussian sigma (pixels) of the light arriving without objects
 
 
 def instance_spheres(scene: TraceScene) -> tuple[np.ndarray, np.ndarray]:
@@ -70,7 +82,7 @@ def split_intersectors(scene: TraceScene) -> tuple[Intersector, Intersector]:
 def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.random.Generator, *,
                  samples: int = 32, min_effect: float = 0.02, stride: int = 1, smooth: float = 0.0,
                  eps: float = 1e-4, room_isect: Intersector | None = None,
-                 obj_isect: Intersector | None = None) -> np.ndarray:
+                 obj_isect: Intersector | None = None, contact_px: int = CONTACT_BAND_PX) -> np.ndarray:
     """Shadow ratio per pixel, (H, W) float32; 1 on object pixels and wherever nothing changes.
 
     Parameters
@@ -80,8 +92,11 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
     labels : (H, W) uint16 object labels (0 = room); labelled pixels are not room pixels
     samples : hemisphere rays per traced room point (and ``max(2, samples // 4)`` per nearby object)
     min_effect : smallest possible change worth tracing (see the module docstring)
-    stride : trace one pixel in ``stride x stride`` and interpolate bilinearly (shadows are smooth)
-    smooth : Gaussian blur (sigma, in traced-grid pixels) of the ratio before upsampling; 0 = none
+    stride : away from the objects, trace one pixel in ``stride x stride`` (shadows are smooth there)
+    smooth : Gaussian smoothing (sigma, in traced-grid pixels) of the ratio away from the objects; 0 = none
+    contact_px : room pixels within this many pixels of an object are all traced, at full resolution and
+        with ``2 * samples`` rays, and smoothed over one pixel only: the dark line where an object meets
+        the surface it rests on is a few pixels wide
     room_isect, obj_isect : prebuilt intersectors of :func:`split_intersectors` (built when None)
     """
     H, W = camera.height, camera.width
@@ -90,9 +105,11 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
         return out.reshape(H, W)
     if room_isect is None or obj_isect is None:
         room_isect, obj_isect = split_intersectors(scene)
+    obj = np.asarray(labels) > 0
     grid = np.zeros((H, W), bool)
     grid[::stride, ::stride] = True
-    pix = np.flatnonzero((np.asarray(labels) == 0).ravel() & grid.ravel())
+    contact = _dilate(obj, contact_px) & ~obj if stride > 1 or smooth > 0 else np.zeros((H, W), bool)
+    pix = np.flatnonzero(~obj.ravel() & (grid | contact).ravel())
     o, d = camera.rays(pix, np.full((pix.size, 2), 0.5))
     h = scene.intersector.intersect(o, d)
     room_hit = h.hit & (scene.tri_inst[np.maximum(h.prim, 0)] == 0)
@@ -114,12 +131,13 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
     if n == 0:
         return out.reshape(H, W)
     # E0, the light arriving without objects: cosine-weighted hemisphere rays against the room alone
-    pr = np.repeat(np.arange(n), samples)
+    per = np.where(contact.ravel()[pix], 2 * samples, samples)              # rays per point
+    pr = np.repeat(np.arange(n), per)
     uu = rng.random((2, pr.size))
     dl, _ = cosine_hemisphere(uu[0], uu[1])
     dw = to_world(dl, ng[pr].astype(np.float64)).astype(np.float32)
     L0 = _room_radiance(scene, room_isect, offset_origins(p[pr], ng[pr], dw, eps), dw)[0] @ LUMINANCE_F64
-    E0 = np.bincount(pr, weights=L0, minlength=n) / samples
+    E0 = np.bincount(pr, weights=L0, minlength=n) / per
     E1 = E0.copy()
     # what the objects change: rays sampled uniformly inside the cone of each nearby bounding sphere
     # (low noise for a small solid angle); a ray that hits an object before the room swaps the room's
@@ -130,12 +148,13 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
     axes = c[None] - p[:, None, :].astype(np.float64)
     axes /= np.maximum(np.linalg.norm(axes, axis=2, keepdims=True), 1e-12)
     cone = sin2 >= min_effect
-    m = max(2, samples // 4)  # rays per cone: a small solid angle needs few
+    mper = np.maximum(2, per // 4)  # rays per cone: a small solid angle needs few
     for k in range(c.shape[0]):
         sel = np.flatnonzero(cone[:, k])
         if sel.size == 0:
             continue
-        prk = np.repeat(sel, m)
+        prk = np.repeat(sel, mper[sel])
+        m = mper[prk]
         uu = rng.random((2, prk.size))
         cm = cos_max[prk, k]
         ct = 1 - uu[0] * (1 - cm)
@@ -147,7 +166,7 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
         ok = np.flatnonzero(cosn > 0)
         if ok.size == 0:
             continue
-        prk, dw, cosn, cm = prk[ok], dw[ok].astype(np.float32), cosn[ok], cm[ok]
+        prk, dw, cosn, cm, m = prk[ok], dw[ok].astype(np.float32), cosn[ok], cm[ok], m[ok]
         org = offset_origins(p[prk], ng[prk], dw, eps)
         ho = obj_isect.intersect(org, dw)
         b = np.flatnonzero(ho.hit)
@@ -163,7 +182,7 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
         inside = (np.einsum("ij,ikj->ik", dw[b].astype(np.float64), axes[prk[b]]) >= cos_max[prk[b]]) & cone[prk[b]]
         shared = np.maximum(inside.sum(axis=1), 1)
         pdf = 1.0 / (2 * np.pi * (1 - cm[b]))
-        dE = (Lb - alb * E0[prk[b]]) * cosn[b] / np.pi / pdf / m / shared
+        dE = (Lb - alb * E0[prk[b]]) * cosn[b] / np.pi / pdf / m[b] / shared
         E1 -= np.bincount(prk[b], weights=dE, minlength=n)
     pl = scene.point_lights
     for k in range(pl.count):
@@ -182,19 +201,47 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
         e = (pl.intensity[k] @ LUMINANCE_F64) * cos[ok] / dd[ok] ** 2 / np.pi  # as radiance from a white surface
         E0[ok] += e
         E1[ok] += np.where(obj_isect.occluded(org_l, wl[ok], tmax), 0.0, e)
+    if stride > 1 or smooth > 0:
+        # The light arriving without objects changes slowly over the room: average it over neighbouring
+        # points (its sampling noise would otherwise scale the objects' effect); what the objects take
+        # away (E0 - E1) keeps its full resolution.
+        traced = np.zeros(H * W, bool)
+        traced[pix] = True
+        e0 = np.zeros(H * W)
+        e0[pix] = E0
+        E0s = _normalized_blur(e0.reshape(H, W), traced.reshape(H, W), E0_SMOOTH_PX).ravel()[pix]
+        E1, E0 = E0s - (E0 - E1), E0s
     ratio = np.where(E0 > 0, E1 / np.where(E0 > 0, E0, 1.0), 1.0)
     out[pix] = np.clip(ratio, 0.0, 2.0)
     log.debug("shadow ratio: %d room points traced, %d rays", n, pr.size)
     out = out.reshape(H, W)
     if stride == 1 and smooth <= 0:
         return out
-    coarse = out[::stride, ::stride]
+    # Normalised convolution over room samples only (object pixels carry no sample, so the ratio beside an
+    # object is not pulled towards 1 by it): wide away from the objects, one pixel in the contact band.
+    far = _normalized_blur(out, grid & ~obj, max(smooth, 0.5) * stride)
+    near = _normalized_blur(out, (grid | contact) & ~obj, CONTACT_SMOOTH_PX)
+    res = np.where(contact, near, far)
+    res[obj] = 1.0
+    return res.astype(np.float32)
+
+
+def _dilate(mask: np.ndarray, px: int) -> np.ndarray:
+    """``mask`` grown by ``px`` pixels (square neighbourhood)."""
+    import cv2
+
+    if px <= 0:
+        return mask.copy()
+    return cv2.dilate(mask.astype(np.uint8), np.ones((2 * px + 1, 2 * px + 1), np.uint8)) > 0
+
+
+def _normalized_blur(values: np.ndarray, samples: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian-weighted mean of ``values`` over the pixels in ``samples`` (H, W) bool, at every pixel
+    (1 where no sample is within reach)."""
     from scipy import ndimage
 
-    if smooth > 0:
-        coarse = 1.0 + ndimage.gaussian_filter(coarse - 1.0, smooth, mode="constant")
-    # coarse sample (i, j) sits at pixel (i stride, j stride): interpolate at exactly those coordinates
-    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32) / np.float32(stride)
-    up = ndimage.map_coordinates(coarse, [yy, xx], order=1, mode="nearest")
-    up[np.asarray(labels) > 0] = 1.0
-    return up.astype(np.float32)
+    w = samples.astype(np.float64)
+    num = ndimage.gaussian_filter(np.where(samples, values, 0.0).astype(np.float64), sigma, mode="nearest",
+                                  truncate=3.0)
+    den = ndimage.gaussian_filter(w, sigma, mode="nearest", truncate=3.0)
+    return np.where(den > 1e-6, num / np.maximum(den, 1e-12), 1.0)

@@ -85,6 +85,30 @@ def test_shadow_ratio_is_one_far_away_and_without_objects():
     assert (shadow_ratio(empty, cam, labels, np.random.default_rng(0)) == 1).all()
 
 
+def test_contact_shadow_keeps_its_strength_beside_the_object():
+    """Issue 16: a sphere resting on the floor. Within 3 px of its silhouette the default (stride 2,
+    smoothed) ratio has the mean of a full-resolution reference; object pixels must not pull it towards 1
+    (they did: the band's mean was ~0.04 too bright)."""
+    from scipy import ndimage
+
+    rv, rf = box_room((-2, -2, 0), (2, 2, 2.6), n=8)
+    v, f, n = uv_sphere(0.12, (0, 0, 0.12), n_lat=24, n_lon=48)
+    ob = ObjectInstance(vertices=v, faces=f, normals=n, albedo=np.full((len(v), 3), 0.5, np.float32))
+    sc = build_scene(rv, rf, None, [ob], room_linear_radiance=np.ones((len(rv), 3)))
+    K = np.array([[260.0, 0, 79.5], [0, 260.0, 59.5], [0, 0, 1]])
+    cam = Camera(K=K, T_c2w=look_at((0.05, -0.6, 0.45), (0.0, 0.0, 0.06)), width=160, height=120)
+    o, d = cam.rays(np.arange(160 * 120), np.full((160 * 120, 2), 0.5))
+    h = sc.intersector.intersect(o, d)
+    labels = np.where(h.hit, sc.tri_inst[np.maximum(h.prim, 0)], 0).astype(np.uint16).reshape(120, 160)
+    band = ndimage.binary_dilation(labels > 0, iterations=3) & (labels == 0)
+    ref = shadow_ratio(sc, cam, labels, np.random.default_rng(1), samples=256, min_effect=0.04)
+    assert ref[band].min() < 0.6           # a real contact shadow to keep
+    sr = shadow_ratio(sc, cam, labels, np.random.default_rng(2), samples=16, min_effect=0.04, stride=2, smooth=1.0)
+    assert abs(sr[band].mean() - ref[band].mean()) < 0.015
+    assert np.abs(sr - ref)[band].mean() < 0.05
+    assert (sr[labels > 0] == 1).all()
+
+
 # --------------------------------------------------------------------------------------------------
 # Denoiser
 # --------------------------------------------------------------------------------------------------
