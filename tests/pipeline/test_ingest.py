@@ -312,32 +312,12 @@ def test_transforms_ply_file_path_mesh_or_point_cloud(tmp_path):
 def test_mesh_made_from_one_depth_frame_is_seen_not_enclosing(shared_data, tmp_path):
     """Issue 20: a mesh from one frame's depth (a kitchen seen from 1-3 m) does not enclose its camera, but
     the camera sees it: ingest accepts it. The same mesh in millimetres is still refused."""
-    import shutil
+    from tests.pipeline.oneview import one_view_scan
 
-    import cv2
-
-    src = shared_data / "scans" / "7scenes-redkitchen"
-    scan = tmp_path / "one-view"
-    (scan / "frames").mkdir(parents=True)
-    for f in ("camera-intrinsics.txt", "gravity-direction.txt"):
-        if (src / f).is_file():
-            shutil.copy(src / f, scan / f)
-    for ext in ("color.jpg", "depth.png", "pose.txt"):
-        shutil.copy(src / "frames" / f"frame-000000.{ext}", scan / "frames" / f"frame-000000.{ext}")
-    s = read_scan(scan)
-    cam = s.camera(0)
-    d = cv2.imread(str(scan / "frames" / "frame-000000.depth.png"), cv2.IMREAD_UNCHANGED)[::8, ::8] / 1000.0
-    d[(d <= 0) | (d > 4.0)] = np.nan
-    v, u = np.mgrid[0:d.shape[0], 0:d.shape[1]] * 8
-    P = cam.c2w(cam.unproject(u.ravel(), v.ravel(), d.ravel()))
-    idx = np.arange(d.size).reshape(d.shape)
-    quads = np.stack([idx[:-1, :-1], idx[:-1, 1:], idx[1:, 1:], idx[1:, :-1]], -1).reshape(-1, 4)
-    ok = np.isfinite(P[quads]).all(axis=(1, 2))
-    F = np.concatenate([quads[ok][:, [0, 1, 2]], quads[ok][:, [0, 2, 3]]])
-    P = np.nan_to_num(P)
+    scan, mesh, P, F = one_view_scan(shared_data, tmp_path)
+    cam = read_scan(scan).camera(0)
     lo, hi = P[np.unique(F)].min(0), P[np.unique(F)].max(0)
     assert not np.all((cam.center >= lo) & (cam.center <= hi))     # the old bounding-box rule refused it
-    (tmp_path / "mesh.ply").write_bytes(ply_bytes(P, F, None))
     res = run_stage(tmp_path / "run", {"scan": {"paths": [str(scan)], "mesh": str(tmp_path / "mesh.ply")}})
     assert res["one-view"]["frames"] == 1 and res["one-view"]["mesh"].startswith("converted")
     (tmp_path / "mm.ply").write_bytes(ply_bytes(P * 1000.0, F, None))
