@@ -38,12 +38,14 @@ import numpy as np
 from pipeline.camera import project_points, transform_points, unproject_points
 from pipeline.types import Scan
 
-__all__ = ["Registration", "FrameEdges", "frame_edges", "depth_edge_points", "photo_edge_distance", "edge_distances",
+__all__ = ["Registration", "FrameEdges", "frame_edges", "depth_edge_points", "photo_edges", "edge_distances",
            "fit_color_camera", "estimate_color_camera", "pose_from_params"]
 
 JUMP_REL = 0.04          # a depth jump is at least 4 % of the nearer depth ...
 JUMP_ABS = 0.03          # ... plus 3 cm (Kinect noise at 3 m is ~1-2 cm)
-TRUNC_PX = 6.0           # distance transform truncated here in the fine fit (outliers, clutter)
+TRUNC_PX = 6.0           # the fine fit pairs points with photo edges this close (pixels) at first ...
+TRUNC_MIN_PX = 2.0       # ... shrinking to this
+HUBER_PX = 0.5           # Huber threshold of the fine fit's point-to-edge residuals, pixels
 COARSE_TRUNC_PX = 15.0   # ... and here in the coarse grid
 MIN_POINTS_PER_FRAME = 50
 MIN_FRAMES = 2
@@ -73,6 +75,9 @@ class FrameEdges:
 
     points_d: np.ndarray   # (N, 3) float64, depth edge points, depth camera frame, metres
     dist: np.ndarray       # (H, W) float32, distance to the nearest photo edge, pixels
+    nearest: np.ndarray    # (H, W) int32, index into edge_uv of each pixel's nearest photo edge pixel
+    edge_uv: np.ndarray    # (E, 2) float64, sub-pixel photo edge positions (u, v), pixels
+    edge_n: np.ndarray     # (E, 2) float64, unit normals of the photo edges (image gradient direction)
 
 
 def depth_edge_points(depth: np.ndarray, K_d: np.ndarray, *, max_points: int | None = None,
@@ -107,20 +112,48 @@ def depth_edge_points(depth: np.ndarray, K_d: np.ndarray, *, max_points: int | N
     return p
 
 
-def photo_edge_distance(rgb: np.ndarray, *, blur_sigma: float = 1.0, canny: tuple[float, float] = (20.0, 60.0)
-                        ) -> np.ndarray:
-    """Distance (pixels, float32, shape of the photo) from each pixel to the nearest Canny edge of the
-    lightly blurred gray photo ``rgb (H, W, 3) uint8``; ``inf`` everywhere when the photo has no edge."""
+def photo_edges(rgb: np.ndarray, *, blur_sigma: float = 1.0, canny: tuple[float, float] = (20.0, 60.0)
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The photo's edges: Canny edges of the lightly blurred gray photo ``rgb (H, W, 3) uint8``.
+
+    Returns
+    -------
+    dist : (H, W) float32, distance (pixels) from each pixel to the nearest edge pixel; ``inf`` everywhere
+        when the photo has no edge.
+    nearest : (H, W) int32, index of that nearest edge pixel into the next two arrays.
+    edge_uv : (E, 2) float64, each edge pixel moved to the gradient maximum along the gradient (sub-pixel,
+        a parabola through three samples).
+    edge_n : (E, 2) float64, unit gradient direction at each edge pixel.
+    """
     import cv2
 
     gray = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
     if blur_sigma > 0:
         gray = cv2.GaussianBlur(gray, (0, 0), blur_sigma)
     edges = cv2.Canny(gray, canny[0], canny[1], L2gradient=True)
-    if not edges.any():
-        return np.full(gray.shape, np.inf, np.float32)
-    return cv2.distanceTransform(np.where(edges > 0, 0, 255).astype(np.uint8), cv2.DIST_L2,
-                                 cv2.DIST_MASK_PRECISE)
+    H, W = gray.shape
+    r, c = np.nonzero(edges)
+    if not len(r):
+        return (np.full((H, W), np.inf, np.float32), np.zeros((H, W), np.int32), np.zeros((0, 2)),
+                np.zeros((0, 2)))
+    dist, labels = cv2.distanceTransformWithLabels(np.where(edges > 0, 0, 255).astype(np.uint8), cv2.DIST_L2,
+                                                   cv2.DIST_MASK_PRECISE, labelType=cv2.DIST_LABEL_PIXEL)
+    lab2edge = np.zeros(int(labels.max()) + 1, np.int32)
+    lab2edge[labels[r, c]] = np.arange(len(r), dtype=np.int32)
+    g = gray.astype(np.float32)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
+    mag = np.hypot(gx, gy)
+    n = np.stack([gx[r, c], gy[r, c]], axis=1).astype(np.float64)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-9)
+    uv = np.stack([c, r], axis=1).astype(np.float64)
+    m0 = mag[r, c].astype(np.float64)
+    mm = _sample(mag, uv - n, m0)
+    mp = _sample(mag, uv + n, m0)
+    den = mm - 2 * m0 + mp
+    off = np.where(den < -1e-6, 0.5 * (mm - mp) / np.where(den < -1e-6, den, -1.0), 0.0)
+    uv = uv + np.clip(off, -0.5, 0.5)[:, None] * n
+    return dist, lab2edge[labels], uv, n
 
 
 def pose_from_params(rvec: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -171,18 +204,6 @@ def edge_distances(frames: list[FrameEdges], K_c: np.ndarray, T_d2c: np.ndarray)
     return out
 
 
-def _params_to_camera(x: np.ndarray, K0: np.ndarray, z_ref: float) -> tuple[np.ndarray, np.ndarray]:
-    """Parameters in pixel-sized units -> (K_c, T_d2c). ``x = (dfx, dfy, dcx, dcy, 3 x rotation * f,
-    3 x translation * f / z_ref)``: one unit moves the image by about one pixel."""
-    f = K0[0, 0]
-    K = K0.copy()
-    K[0, 0] += x[0]
-    K[1, 1] += x[1]
-    K[0, 2] += x[2]
-    K[1, 2] += x[3]
-    return K, pose_from_params(x[4:7] / f, x[7:10] * z_ref / f)
-
-
 def _coarse_grid(cost, K0: np.ndarray) -> np.ndarray:
     """Best ``(dfx, dfy, dcx, dcy)`` of a scale about the principal point and a pixel shift, on a grid
     refined twice around its best cell; ``cost(K)`` is the mean truncated distance at ``K``."""
@@ -218,8 +239,6 @@ def fit_color_camera(frames: list[FrameEdges], K0: np.ndarray, T0: np.ndarray | 
     -------
     K_c (3, 3) float64, T_d2c (4, 4) float64.
     """
-    from scipy.optimize import least_squares
-
     K0 = np.asarray(K0, np.float64)
     T0 = np.eye(4) if T0 is None else np.asarray(T0, np.float64)
     # All frames' points moved into the initial colour camera once; the fit moves them further.
@@ -227,45 +246,89 @@ def fit_color_camera(frames: list[FrameEdges], K0: np.ndarray, T0: np.ndarray | 
     P = np.concatenate(pts, axis=0)
     fid = np.concatenate([np.full(len(p), k) for k, p in enumerate(pts)])
     H, W = frames[0].dist.shape
-    D = np.stack([np.minimum(f.dist, 4 * COARSE_TRUNC_PX) for f in frames]).astype(np.float32)
-    z_ref = float(np.median(P[:, 2]))
-    f0 = K0[0, 0]
+    Dc = np.stack([np.minimum(f.dist, 4 * COARSE_TRUNC_PX) for f in frames]).astype(np.float32)
 
-    def residuals(K, T, trunc, sel=slice(None)):
-        uv, z = project_points(K, transform_points(T, P[sel]))
+    def coarse_cost(K, sel):
+        """Mean truncated distance at the points ``sel`` seen through ``K`` (and T = identity)."""
+        uv, z = project_points(K, P[sel])
         u, v = uv[:, 0], uv[:, 1]
         ok = (z > 1e-6) & (u >= 0) & (v >= 0) & (u <= W - 1) & (v <= H - 1)
-        r = np.full(len(z), trunc)
+        r = np.full(len(z), COARSE_TRUNC_PX)
         u, v, k = u[ok], v[ok], fid[sel][ok]
         u0 = np.minimum(u.astype(np.int64), W - 2)
         v0 = np.minimum(v.astype(np.int64), H - 2)
         fu, fv = u - u0, v - v0
-        s = ((D[k, v0, u0] * (1 - fu) + D[k, v0, u0 + 1] * fu) * (1 - fv)
-             + (D[k, v0 + 1, u0] * (1 - fu) + D[k, v0 + 1, u0 + 1] * fu) * fv)
-        r[ok] = np.minimum(s, trunc)
-        return r
+        s = ((Dc[k, v0, u0] * (1 - fu) + Dc[k, v0, u0 + 1] * fu) * (1 - fv)
+             + (Dc[k, v0 + 1, u0] * (1 - fu) + Dc[k, v0 + 1, u0 + 1] * fu) * fv)
+        r[ok] = np.minimum(s, COARSE_TRUNC_PX)
+        return float(np.mean(r))
 
-    x0 = np.zeros(10)
+    K = K0.copy()
     if coarse:
         sub = np.random.default_rng(0).permutation(len(P))[:3000]
-        x0[:4] = _coarse_grid(lambda K: float(np.mean(residuals(K, np.eye(4), COARSE_TRUNC_PX, sub))), K0)
-    n = len(P)
-    sig_r = np.deg2rad(PRIOR_ROT_DEG) * f0
-    sig_t = PRIOR_T_M * f0 / z_ref
-    w = prior_weight * np.sqrt(n) * 0.05
-
-    def fun(x):
-        K, T = _params_to_camera(x, K0, z_ref)
-        r = residuals(K, T, TRUNC_PX)
-        prior = w * np.concatenate([x[4:7] / sig_r, x[7:10] / sig_t])
-        return np.concatenate([r, prior])
-
-    for trunc_scale in (1.0,):
-        sol = least_squares(fun, x0, loss="soft_l1", f_scale=1.0, diff_step=0.02, x_scale=1.0,
-                            method="trf", max_nfev=200)
-        x0 = sol.x
-    K, T = _params_to_camera(x0, K0, z_ref)
+        K[0, 0], K[1, 1], K[0, 2], K[1, 2] = np.array([K0[0, 0], K0[1, 1], K0[0, 2], K0[1, 2]]) + _coarse_grid(
+            lambda Kc: coarse_cost(Kc, sub), K0)
+    K, T = _refine(frames, pts, K, prior_weight)
     return K, T @ T0
+
+
+def _refine(frames: list[FrameEdges], pts: list[np.ndarray], K: np.ndarray, prior_weight: float,
+            iters: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton on point-to-edge-line distances (ICP with the photos' sub-pixel edges): each projected
+    depth edge point is paired with its nearest photo edge pixel within a shrinking distance, its residual
+    is the signed distance along that edge's normal (Huber weights); unknowns are ``fx, fy, cx, cy`` and an
+    increment of ``T`` (left-multiplied), with weak priors holding ``T`` near the identity."""
+    H, W = frames[0].dist.shape
+    T = np.eye(4)
+    n_pts = sum(len(p) for p in pts)
+    wp = prior_weight * 0.05 * np.sqrt(n_pts)
+    sig_r, sig_t = np.deg2rad(PRIOR_ROT_DEG), PRIOR_T_M
+    for it in range(iters):
+        trunc = max(TRUNC_MIN_PX, TRUNC_PX * 0.85 ** it)
+        J, res = [], []
+        for f, p in zip(frames, pts):
+            pc = transform_points(T, p)
+            X, Y, Z = pc[:, 0], pc[:, 1], np.maximum(pc[:, 2], 1e-9)
+            u, v = K[0, 0] * X / Z + K[0, 2], K[1, 1] * Y / Z + K[1, 2]
+            ok = (pc[:, 2] > 1e-6) & (u >= 0) & (v >= 0) & (u <= W - 1) & (v <= H - 1)
+            ui, vi = np.rint(u[ok]).astype(np.int64), np.rint(v[ok]).astype(np.int64)
+            near = f.dist[vi, ui] <= trunc
+            sel = np.nonzero(ok)[0][near]
+            if not len(sel):
+                continue
+            e = f.nearest[vi[near], ui[near]]
+            n, q = f.edge_n[e], f.edge_uv[e]
+            X, Y, Z, P = X[sel], Y[sel], Z[sel], pc[sel]
+            res.append(n[:, 0] * (u[sel] - q[:, 0]) + n[:, 1] * (v[sel] - q[:, 1]))
+            a = np.stack([n[:, 0] * K[0, 0] / Z, n[:, 1] * K[1, 1] / Z,
+                          -(n[:, 0] * K[0, 0] * X + n[:, 1] * K[1, 1] * Y) / Z ** 2], axis=1)
+            J.append(np.column_stack([n[:, 0] * X / Z, n[:, 1] * Y / Z, n[:, 0], n[:, 1], np.cross(P, a), a]))
+        if not res:
+            break
+        r, A = np.concatenate(res), np.concatenate(J)
+        w = np.sqrt(np.minimum(1.0, HUBER_PX / np.maximum(np.abs(r), 1e-12)))
+        rot = _rotvec(T)
+        prior_A = np.zeros((6, 10))
+        prior_A[:3, 4:7] = np.eye(3) * wp / sig_r
+        prior_A[3:, 7:] = np.eye(3) * wp / sig_t
+        prior_r = np.concatenate([rot * wp / sig_r, T[:3, 3] * wp / sig_t])
+        dx = np.linalg.lstsq(np.vstack([A * w[:, None], prior_A]), -np.concatenate([r * w, prior_r]),
+                             rcond=None)[0]
+        K = K.copy()
+        K[0, 0] += dx[0]
+        K[1, 1] += dx[1]
+        K[0, 2] += dx[2]
+        K[1, 2] += dx[3]
+        T = pose_from_params(dx[4:7], dx[7:10]) @ T
+        if trunc <= TRUNC_MIN_PX and np.abs(dx[:4]).max() < 1e-3 and np.abs(dx[4:]).max() < 1e-6:
+            break
+    return K, T
+
+
+def _rotvec(T: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(T[:3, :3]).as_rotvec()
 
 
 def frame_edges(scan: Scan, i: int, *, max_points: int, rng: np.random.Generator) -> FrameEdges | None:
@@ -281,7 +344,7 @@ def frame_edges(scan: Scan, i: int, *, max_points: int, rng: np.random.Generator
     except InputError:
         return None
     return FrameEdges(points_d=depth_edge_points(depth, scan.depth_K[i], max_points=max_points, rng=rng),
-                      dist=photo_edge_distance(rgb))
+                      **dict(zip(("dist", "nearest", "edge_uv", "edge_n"), photo_edges(rgb))))
 
 
 def estimate_color_camera(scan: Scan, frames: np.ndarray | None = None, *, max_points: int = 2000,
