@@ -133,3 +133,12 @@ def test_bad_input_is_unreliable_not_an_error(scans, tmp_path):
     assert not other.reliable and ("no match" in other.reason or "no improvement" in other.reason), other.reason
     for r in (one, no_depth, flat, other):
         assert "\n" not in r.reason and r.color_K.shape == (3, 3)
+
+
+@pytest.mark.slow
+def test_real_redkitchen_edges_line_up(shared_data):
+    scan = read_scan(shared_data / "scans" / "7scenes-redkitchen")
+    reg = estimate_color_camera(scan, np.arange(0, scan.num_frames, 5))
+    assert reg.reliable, reg.reason
+    assert reg.median_after_px < 1.5 and reg.median_before_px > 3.0
+    assert 510 < reg.color_K[0, 0] < 540 and np.linalg.norm(reg.T_d2c[:3, 3]) < 0.05
