@@ -14,10 +14,11 @@ This module estimates the colour camera from the frames themselves:
    edge points are moved into the colour camera, projected, and the distance transform is read there
    (bilinear). Points outside the photo count as the truncation distance.
 4. **Fit.** A coarse grid on focal scale about the principal point and a pixel shift (the dominant
-   effect), then a robust least-squares fit (``scipy.optimize.least_squares``, soft-L1 loss on truncated
-   distances) of all ten parameters, with a weak prior holding rotation and translation near zero
-   (rotation and principal point, translation and principal point are nearly interchangeable on a
-   narrow field of view; the prior settles what the data cannot).
+   effect), then Gauss-Newton on all ten parameters (``fx, fy, cx, cy``, rotation, translation): each
+   depth edge point is paired with its nearest photo edge pixel (within a shrinking radius) and its
+   residual is the distance along that edge's normal to the edge's sub-pixel position (Huber weights),
+   with weak priors holding rotation and translation near zero (rotation and principal point,
+   translation and principal point are nearly interchangeable; the priors settle what the data cannot).
 
 The per-frame figure is the median distance (pixels) from the projected depth edge points inside the
 photo to the nearest photo edge, before (the scan's own colour camera) and after the fit.
