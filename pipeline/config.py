@@ -108,6 +108,11 @@ class IngestConfig:
                               min=0.0, min_exclusive=True)
     min_component_faces: int = option(0, "drop reconstructed mesh pieces with fewer triangles than this; "
                                       "0 = keep all", min=0)
+    register_color: str = option("auto", "colour camera: auto = estimate it from depth and photo edges "
+                                 "(pipeline/registration.py) and use it when it lines them up at least 0.2 px "
+                                 "better than the format's own; off = always the format's", choices=("auto", "off"))
+    registration_frames: int = option(30, "auto: frames (with depth, evenly spread) the colour camera is fitted "
+                                      "on and checked against", min=2)
 
 
 @dataclass(frozen=True)

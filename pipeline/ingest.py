@@ -7,6 +7,11 @@ and one item ``objects``. A scan item writes::
     RUN/ingest/<scene>/frames.npz   frame_ids (F,) int64, K (F,3,3), T_c2w (F,4,4), depth_K (F,3,3) float64
     RUN/ingest/<scene>/room.ply     room mesh: metres, world frame, uint8 vertex colours
 
+Before the mesh, the colour camera is checked against the data: depth edges seen through it must meet the
+photos' edges; where the format gives no colour calibration (7-Scenes) or the check finds a better one,
+the estimated camera replaces it (:func:`pipeline.registration.register_scan`; ``ingest.register_color``),
+and ``scan.json`` records the alignment before and after (``meta["color_registration"]``).
+
 The room mesh is the scan's own mesh converted (textured OBJ -> vertex colours), or a TSDF reconstruction
 (:mod:`pipeline.reconstruct`). The up direction comes from the scan's metadata when it has some (7-Scenes
 ``gravity-direction.txt``), else from the dominant floor plane of the mesh and the cameras' up vote.
@@ -30,6 +35,7 @@ import numpy as np
 from pipeline.config import BUILTIN_PREFIX, Config
 from pipeline.errors import InputError
 from pipeline.io import atomic_write_bytes
+from pipeline.registration import register_scan, registration_figures
 from pipeline.runfolder import RESERVED_SCENES, ROOM_PLY, builtin_scan_dir, save_scan
 from pipeline.runner import INPUT_PROBLEMS, Item, Stage, StageContext
 from pipeline.scanformats.common import BadFrameWarning, IngestWarning, read_color, select_frames, subsample
@@ -128,6 +134,17 @@ def readable_frames(scan: Scan) -> tuple[np.ndarray, list[str]]:
     return np.asarray(keep, np.int64), problems
 
 
+def color_camera(scan: Scan, cfg: Config) -> tuple[Scan, dict]:
+    """The scan with the colour camera its data support (:func:`pipeline.registration.register_scan`),
+    and the record for ``scan.json`` (empty when ``ingest.register_color = "off"``)."""
+    if cfg.ingest.register_color == "off":
+        return scan, {}
+    scan, reg = register_scan(scan, frames=cfg.ingest.registration_frames)
+    level = logging.WARNING if reg.get("misaligned") else logging.INFO
+    log.log(level, "%s: %s", scan.root, reg["note"])
+    return scan, reg
+
+
 def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -> Scan:
     """Read one scan folder, build its room mesh and up direction, write them to ``out_dir``.
 
@@ -161,6 +178,10 @@ def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -
         raise InputError(f"{path}: none of the scan's {scan.num_frames} frames can be read (first: "
                          f"{unreadable[0]}); restore the frames")
     scan = select_frames(scan, ok)
+    scan, reg = color_camera(scan, cfg)
+    if reg.get("misaligned"):
+        notes.append(f"{path}: depth and photos stay misaligned: median edge distance "
+                     f"{reg['median_after_px']:.2f} px ({reg['note']})")
     V, F, C, mesh_note = room_mesh_for(scan, cfg)
     up_meta, up_info = scan.up_w, {}
     up_floor, up_info = floor_up(V, F, scan.T_c2w)
@@ -173,6 +194,11 @@ def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -
     mesh_path = out_dir / ROOM_PLY
     atomic_write_bytes(mesh_path, ply_bytes(V, F, C))
     meta = dict(scan.meta)
+    if reg:
+        meta["registration"] = (reg["note"] if reg["source"] == "estimated"
+                                else f"{meta.get('registration', 'as the format gives it')}; {reg['note']}")
+        meta["color_registration"] = reg
+        meta["registration_figures"] = registration_figures(reg)
     meta.update({"up_source": source, "up": up_info, "mesh": mesh_note, "frames_read": n_read,
                  "frames_kept": int(len(ok)), "frames_unreadable": broken + unreadable, "warnings": notes, "mesh_vertices": int(len(V)),
                  "mesh_faces": int(len(F))})
@@ -208,6 +234,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     return {"scene": scan.name, "format": scan.format, "frames": scan.num_frames,
             "skipped": scan.meta.get("skipped", {}), "mesh": scan.meta["mesh"],
             "mesh_faces": scan.meta["mesh_faces"], "up_source": scan.meta["up_source"],
+            "registration": scan.meta.get("registration", ""),
             INPUT_PROBLEMS: scan.meta["frames_unreadable"]}
 
 

@@ -40,7 +40,8 @@ from pipeline.camera import project_points, transform_points, unproject_points
 from pipeline.types import Scan
 
 __all__ = ["Registration", "FrameEdges", "frame_edges", "depth_edge_points", "photo_edges", "edge_distances",
-           "fit_color_camera", "estimate_color_camera", "pose_from_params"]
+           "fit_color_camera", "estimate_color_camera", "pose_from_params", "register_scan", "registration_figures",
+           "fit_frames"]
 
 JUMP_REL = 0.04          # a depth jump is at least 4 % of the nearer depth ...
 JUMP_ABS = 0.03          # ... plus 3 cm (Kinect noise at 3 m is ~1-2 cm)
@@ -412,3 +413,93 @@ def _nanmedian(x: np.ndarray) -> float:
     x = np.asarray(x, np.float64)
     x = x[np.isfinite(x)]
     return float(np.median(x)) if len(x) else float("nan")
+
+
+# ---------------------------------------------------------------------------------------------------
+# Applying the fit to a scan (ingest)
+# ---------------------------------------------------------------------------------------------------
+
+MIN_GAIN_PX = 0.2        # the data must beat the scan's own colour camera by this much (median) to replace it
+MISALIGNED_PX = 2.0      # a scan whose median edge distance stays above this is reported as misaligned
+
+
+def fit_frames(scan: Scan, n: int) -> np.ndarray:
+    """Up to ``n`` frames with a depth map, evenly spread over the scan (indices, ascending)."""
+    with_depth = np.flatnonzero([bool(p) for p in scan.depth_paths])
+    if len(with_depth) <= n:
+        return with_depth.astype(np.int64)
+    return with_depth[np.unique(np.linspace(0, len(with_depth) - 1, n).round().astype(np.int64))]
+
+
+def register_scan(scan: Scan, *, frames: int = 30) -> tuple[Scan, dict]:
+    """Give ``scan`` the colour camera its data support, and say how well depth then meets the photos.
+
+    The scan's own colour camera (the format's calibration, or for formats without one the depth
+    camera's) stands unless :func:`estimate_color_camera` on up to ``frames`` frames is reliable and
+    lowers the median edge distance by at least :data:`MIN_GAIN_PX`: a correctly calibrated scan is
+    left alone, byte for byte. When the fit is used, every frame gets its intrinsics, ``meta["T_d2c"]``
+    becomes the fitted offset, and the poses become the colour camera's: the depth camera stays where
+    the scan put it (``T_c2w @ T_d2c`` before and after).
+
+    Returns
+    -------
+    The scan (a new one when the fit is used) and the record for ``scan.json``: ``source`` ("format" or
+    "estimated"), ``note`` (one line: what was done, or what could not be and why), the median edge
+    distances before and after, the frames measured, and the colour camera in use.
+    """
+    import dataclasses
+
+    K_all = np.asarray(scan.K, np.float64)
+    T0 = np.asarray(scan.meta.get("T_d2c", np.eye(4)), np.float64)
+    rec: dict = {"source": "format", "frames_max": int(frames)}
+    idx = fit_frames(scan, frames)
+    if not len(idx):
+        rec["note"] = "not checked: the scan has no depth maps; the format's colour camera is used"
+        return scan, rec
+    if not np.allclose(K_all, K_all[:1], atol=1e-9):
+        rec["note"] = "not estimated: the frames have different intrinsics; the format's colour camera is used"
+        return scan, rec
+    reg = estimate_color_camera(scan, idx)
+    mb, ma = reg.median_before_px, reg.median_after_px
+    rec.update({"frame_ids": [int(scan.frame_ids[i]) for i in reg.frames],
+                "before_px": [round(float(x), 4) for x in reg.before_px],
+                "median_before_px": _finite_or_none(mb), "median_fitted_px": _finite_or_none(ma)})
+    use = reg.reliable and mb - ma >= MIN_GAIN_PX
+    if use:
+        rec["source"] = "estimated"
+        rec["after_px"] = [round(float(x), 4) for x in reg.after_px]
+        rec["median_after_px"] = _finite_or_none(ma)
+        rec["note"] = (f"colour camera estimated from {len(reg.frames)} frames: median edge distance "
+                       f"{mb:.2f} px -> {ma:.2f} px")
+        T_new = np.asarray(reg.T_d2c, np.float64)
+        F = scan.num_frames
+        T_c2w = scan.T_c2w @ T0 @ np.linalg.inv(T_new)   # the depth camera stays put
+        meta = dict(scan.meta, T_d2c=T_new.tolist())
+        scan = dataclasses.replace(scan, K=np.repeat(np.asarray(reg.color_K, np.float64)[None], F, axis=0),
+                                   T_c2w=T_c2w, depth_registered=False, meta=meta)
+    else:
+        rec["median_after_px"] = _finite_or_none(mb)
+        why = reg.reason if not reg.reliable else (
+            f"the fit ({ma:.2f} px) gains less than {MIN_GAIN_PX} px over the format's camera ({mb:.2f} px)")
+        rec["note"] = f"format's colour camera kept: {why}"
+    K = scan.K[0]
+    dT = np.asarray(scan.meta.get("T_d2c", np.eye(4)), np.float64)
+    rec.update({"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]), "cy": float(K[1, 2]),
+                "T_d2c": dT.tolist(), "t_d2c_mm": float(np.linalg.norm(dT[:3, 3]) * 1000),
+                "rot_d2c_deg": float(np.degrees(np.linalg.norm(_rotvec(dT))))})
+    rec["misaligned"] = rec["median_after_px"] is not None and rec["median_after_px"] > MISALIGNED_PX
+    return scan, rec
+
+
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def registration_figures(rec: dict) -> dict:
+    """The few figures of a :func:`register_scan` record that the run report shows."""
+    out = {"colour camera": rec.get("source", "format"), "median edge distance before, px": rec.get("median_before_px"),
+           "median edge distance after, px": rec.get("median_after_px"), "frames measured": len(rec.get("frame_ids", []))}
+    for k in ("fx", "fy", "cx", "cy", "t_d2c_mm", "rot_d2c_deg"):
+        if k in rec:
+            out[k] = rec[k]
+    return out

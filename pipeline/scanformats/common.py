@@ -390,9 +390,8 @@ def register_depth(depth: np.ndarray, K_d: np.ndarray, K_c: np.ndarray, T_d2c: n
 def read_depth(scan: Scan, i: int) -> np.ndarray:
     """Depth of frame ``i`` at the colour resolution.
 
-    Registered to the colour camera when the format says how (``scan.meta["T_d2c"]`` and both
-    intrinsics); 7-Scenes ships one K for both cameras and no calibration between them, so its depth is
-    used as stored (small edge offsets; see ``scan.meta["registration"]``).
+    Registered to the colour camera through ``scan.depth_K``, ``scan.K`` and ``scan.meta["T_d2c"]``: the
+    format's calibration, or the one ingest estimated (:func:`pipeline.registration.register_scan`).
 
     Returns
     -------

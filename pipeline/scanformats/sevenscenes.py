@@ -8,9 +8,10 @@ Files (in the scan folder, or in its single sub-folder of frames such as ``seq-0
     camera-intrinsics.txt        3x3 K (the same K for colour and depth)
     gravity-direction.txt        optional: unit gravity vector (pointing down) in the world frame
 
-No mesh is shipped: ingest reconstructs one. Colour and depth cameras of the Kinect v1 are not
-calibrated to each other in this dataset; the depth is used as if registered (one K for both), which
-leaves edge offsets of a few pixels. That mismatch is recorded in ``Scan.meta["registration"]``.
+No mesh is shipped: ingest reconstructs one. The one K and the poses are the depth camera's; the
+Kinect v1's colour camera (shorter focal length, a few centimetres away) is not calibrated in this
+dataset. This reader gives the depth camera's K to both; ingest then estimates the colour camera from
+the frames (:func:`pipeline.registration.register_scan`) and records the result in ``scan.json``.
 """
 
 from __future__ import annotations
@@ -80,8 +81,7 @@ def read(root: Path) -> Scan:
     up = np.zeros(3)
     # Relative to the scan root: scan.json must not depend on where the scan (or the run) lives.
     meta: dict = {"skipped": skipped, "intrinsics_file": Path(os.path.relpath(kpath, root)).as_posix(),
-                  "registration": "assumed: one K for colour and depth, no calibration between the two "
-                                  "cameras in 7-Scenes (edge offsets of a few pixels)"}
+                  "registration": "7-Scenes ships the depth camera's K only: used for colour too"}
     gpath = _find(root, fdir, "gravity-direction.txt")
     if gpath is not None:
         g = read_numbers(gpath, "gravity direction")

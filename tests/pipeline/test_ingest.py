@@ -289,7 +289,10 @@ def test_real_sevenscenes_ingest_subset(shared_data, tmp_path):
         errs.append(np.abs(d - d_real)[ok])
     assert np.median(np.concatenate(errs)) < 0.03
     doc = json.loads((tmp_path / "ingest" / "7scenes-redkitchen" / "scan.json").read_text())
-    assert doc["meta"]["registration"].startswith("assumed")
+    # 7-Scenes gives the depth camera's K only: the colour camera is estimated (issue 16)
+    rec = doc["meta"]["color_registration"]
+    assert doc["meta"]["registration"].startswith("colour camera estimated") and rec["source"] == "estimated"
+    assert 510 < rec["fx"] < 540 and rec["median_after_px"] < 1.5 < rec["median_before_px"]
 
 
 def test_transforms_ply_file_path_mesh_or_point_cloud(tmp_path):

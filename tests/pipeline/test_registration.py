@@ -135,6 +135,72 @@ def test_bad_input_is_unreliable_not_an_error(scans, tmp_path):
         assert "\n" not in r.reason and r.color_K.shape == (3, 3)
 
 
+def _ingest(path: Path, out: Path, **ingest_cfg):
+    from pipeline.config import build_config
+    from pipeline.ingest import ingest_scan
+    from pipeline.runfolder import load_scan
+
+    cfg = build_config({"scan": {"paths": [str(path)]}, "ingest": ingest_cfg})
+    ingest_scan(path, path.name, out / "ingest" / path.name, cfg)
+    return load_scan(out, path.name)     # as the later stages read it
+
+
+def test_ingest_gives_the_scan_its_colour_camera(scans, tmp_path):
+    """Ingest replaces the depth camera's K and poses (all a 7-Scenes folder has) by the colour camera,
+    records the fit, and registers the depth to the photos: checked against the analytic scene's own
+    depth seen through the true colour camera."""
+    from pipeline.scanformats.common import read_depth
+
+    src = Path(scans[0].root)
+    scan = _ingest(src, tmp_path / "ing")
+    np.testing.assert_allclose(np.diag(scan.K[0])[:2], np.diag(K_C)[:2], rtol=0.01)
+    np.testing.assert_allclose(scan.K[0][:2, 2], K_C[:2, 2], atol=0.5)
+    for i in range(scan.num_frames):
+        T_true = np.loadtxt(src / f"frame-{i:06d}.pose.txt") @ np.linalg.inv(T_D2C)   # colour camera pose
+        err = np.linalg.inv(T_true) @ scan.T_c2w[i]
+        assert np.linalg.norm(err[:3, 3]) < 0.002 and rot_deg(err) < 0.2
+    rec = scan.meta["color_registration"]
+    assert rec["source"] == "estimated" and rec["median_before_px"] > 5 and rec["median_after_px"] < 0.5
+    assert len(rec["before_px"]) == len(rec["after_px"]) == 8 and not rec["misaligned"]
+    assert scan.meta["registration_figures"]["colour camera"] == "estimated"
+    # the depth the later stages read is the colour camera's: against the true colour-camera depth
+    T_true = np.loadtxt(src / "frame-000003.pose.txt") @ np.linalg.inv(T_D2C)
+    z_true, _ = render(K_C, T_true)
+    z = read_depth(scan, 3)
+    valid = z > 0
+    assert valid.mean() > 0.6
+    bad = np.abs(z - z_true)[valid] > 0.05       # depth edges a pixel off are the only misses allowed
+    assert bad.mean() < 0.01, bad.mean()
+    # without the fit (the format's camera) the same comparison fails: the test can fail
+    off = _ingest(src, tmp_path / "off", register_color="off")
+    z_off = read_depth(off, 3)
+    assert (np.abs(z_off - z_true)[z_off > 0] > 0.05).mean() > 0.05
+
+
+def test_ingest_leaves_an_exact_calibration_alone(scans, tmp_path):
+    src = Path(scans[1].root)
+    scan = _ingest(src, tmp_path / "ing")
+    before = read_scan(src)
+    assert np.array_equal(scan.K, before.K) and np.array_equal(scan.T_c2w, before.T_c2w)
+    rec = scan.meta["color_registration"]
+    assert rec["source"] == "format" and "kept" in rec["note"] and rec["median_after_px"] <= 0.75
+    assert "T_d2c" not in before.meta and scan.depth_registered == before.depth_registered
+
+
+def test_ingest_falls_back_in_one_line_when_it_cannot_register(scans, tmp_path):
+    """One frame: nothing to fit on; the scan is ingested with its format's camera and says why."""
+    src = Path(scans[1].root)
+    one = tmp_path / "one"
+    one.mkdir()
+    for f in sorted(src.glob("frame-000000.*")) + [src / "camera-intrinsics.txt"]:
+        (one / f.name).write_bytes(f.read_bytes())
+    scan = _ingest(one, tmp_path / "ing")
+    rec = scan.meta["color_registration"]
+    assert rec["source"] == "format" and "1 usable frame(s) of 1, need 2" in rec["note"]
+    assert "\n" not in rec["note"] and np.array_equal(scan.K, read_scan(one).K)
+    assert rec["note"] in scan.meta["registration"]
+
+
 @pytest.mark.slow
 def test_real_redkitchen_edges_line_up(shared_data):
     scan = read_scan(shared_data / "scans" / "7scenes-redkitchen")
@@ -142,3 +208,45 @@ def test_real_redkitchen_edges_line_up(shared_data):
     assert reg.reliable, reg.reason
     assert reg.median_after_px < 1.5 and reg.median_before_px > 3.0
     assert 510 < reg.color_K[0, 0] < 540 and np.linalg.norm(reg.T_d2c[:3, 3]) < 0.05
+
+
+def _opencv_edge_distance(depth: np.ndarray, rgb: np.ndarray) -> float:
+    """Median distance (px) from depth discontinuities to the photo's Canny edges, with OpenCV and NumPy
+    only (not the module's own measure): a pixel is a depth edge when a 4-neighbour's depth is more than
+    5 % + 3 cm farther away."""
+    near = np.zeros(depth.shape, bool)
+    for axis in (0, 1):
+        a, b = (depth[:-1], depth[1:]) if axis == 0 else (depth[:, :-1], depth[:, 1:])
+        ok = (a > 0) & (b > 0)
+        jump = ok & (np.abs(a - b) > 0.05 * np.minimum(a, b) + 0.03)
+        first = jump & (a < b)
+        second = jump & (b < a)
+        if axis == 0:
+            near[:-1] |= first
+            near[1:] |= second
+        else:
+            near[:, :-1] |= first
+            near[:, 1:] |= second
+    gray = cv2.GaussianBlur(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), (0, 0), 1.0)
+    edges = cv2.Canny(gray, 20, 60)
+    dist = cv2.distanceTransform((edges == 0).astype(np.uint8), cv2.DIST_L2, 5)
+    return float(np.median(dist[near])) if near.any() else float("nan")
+
+
+@pytest.mark.slow
+def test_real_redkitchen_registered_depth_meets_held_out_photos(shared_data):
+    """Fit on the even frames; on the odd ones the depth that every later stage reads (and the dataset
+    writes) meets the photos' edges within about a pixel; the depth camera's K alone leaves ~3 px."""
+    from pipeline.registration import register_scan
+    from pipeline.scanformats.common import read_color, read_depth, select_frames
+
+    scan = read_scan(shared_data / "scans" / "7scenes-redkitchen")
+    fitted, rec = register_scan(select_frames(scan, np.arange(0, scan.num_frames, 2)), frames=30)
+    assert rec["source"] == "estimated", rec["note"]
+    odd = select_frames(scan, np.arange(1, scan.num_frames, 4))
+    held = dataclasses.replace(odd, K=np.repeat(fitted.K[:1], odd.num_frames, 0),
+                               T_c2w=odd.T_c2w @ np.linalg.inv(np.asarray(fitted.meta["T_d2c"])),
+                               meta=dict(odd.meta, T_d2c=fitted.meta["T_d2c"]))
+    after = [_opencv_edge_distance(read_depth(held, i), read_color(held, i)) for i in range(held.num_frames)]
+    before = [_opencv_edge_distance(read_depth(odd, i), read_color(odd, i)) for i in range(odd.num_frames)]
+    assert np.median(after) < 1.6 and np.median(before) > 2.5, (np.median(before), np.median(after))
