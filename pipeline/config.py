@@ -164,8 +164,13 @@ class SimulateConfig:
     p_velocity: float = option(0.0, "probability that an object gets a random initial velocity and spin",
                                min=0.0, max=1.0)
     friction: float = option(0.5, "Coulomb friction coefficient of every contact", min=0.0)
-    room_thickness: float = option(0.01, "half-thickness given to the scan's paper-thin surfaces, metres "
-                                   "(objects rest this far above them)", min=0.0, min_exclusive=True)
+    room_thickness: float = option(0.01, "half-thickness given to the scan's paper-thin surfaces while objects "
+                                   "fall and tumble (bridges small holes, stops tunnelling), metres",
+                                   min=0.0, min_exclusive=True)
+    rest_thickness: float = option(0.001, "once a drop rests, the shell shrinks to this and the objects settle "
+                                   "onto the scanned surface itself (their own hull vertices touch it), metres; "
+                                   ">= room_thickness: objects stay on the thick shell", min=0.0,
+                                   min_exclusive=True)
     max_penetration: float = option(0.002, "reject drops whose final penetration is deeper, metres",
                                     min=0.0, min_exclusive=True)
 

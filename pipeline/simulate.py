@@ -79,7 +79,7 @@ def simulate(cfg: SimulateConfig, *, scene: str, drop: int, room, up: np.ndarray
     bodies = [body_of(proxies[int(i)], cfg.friction) for i in chosen]
     st = DropSettings(timestep=cfg.timestep, max_time=cfg.max_time, p_velocity=cfg.p_velocity,
                       friction=cfg.friction, room_thickness=cfg.room_thickness,
-                      max_penetration=cfg.max_penetration)
+                      rest_thickness=cfg.rest_thickness, max_penetration=cfg.max_penetration)
     facts: dict = {}
     r = None
     info = room_info(room, up) if info is None else info

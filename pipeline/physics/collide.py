@@ -187,6 +187,12 @@ def collide(model: Model, state: State) -> Contacts:
     awake = ~state.asleep
     P = len(model.plane)
     n_other = B + P + 1
+    if not model.exact_room_contacts or model.body_room_verts is None:
+        Wrv, rmask = Wv, vmask
+    else:
+        Wrv = np.einsum("bij,bvj->bvi", R, model.body_room_verts) + state.pos[:, None, :]
+        rmask = np.arange(Wrv.shape[1])[None, :] < model.body_room_nvert[:, None]
+    n_feat = max(2 * V + 1, Wrv.shape[1])
     out = {k_: [] for k_ in ("a", "b", "pos", "n", "d", "key")}
 
     def emit(a, b, pos, n, d, other, vidx):
@@ -195,7 +201,7 @@ def collide(model: Model, state: State) -> Contacts:
         out["pos"].append(pos)
         out["n"].append(n)
         out["d"].append(d)
-        out["key"].append((a.astype(np.int64) * n_other + other) * (2 * V + 1) + vidx)
+        out["key"].append((a.astype(np.int64) * n_other + other) * n_feat + vidx)
 
     aw = np.flatnonzero(awake)
     if len(aw):
@@ -217,8 +223,8 @@ def collide(model: Model, state: State) -> Contacts:
                       + 0.5 * model.room_spacing)]
         if model.has_room and len(ar):
             near = model.room_thickness + rad[ar, None] + spec[ar, None]
-            vm = vmask[ar]
-            Wr = Wv[ar]
+            vm = rmask[ar]
+            Wr = Wrv[ar]
             udf, grad = room_distance(model, Wr)
             if model.room_mesh is not None:
                 sel = vm & (udf < near + 0.5 * model.room_spacing)
@@ -232,7 +238,7 @@ def collide(model: Model, state: State) -> Contacts:
             bi, vi, dk = _pick(d, Wr, k, patch, spec[ar, None])
             body = ar[bi]
             nrm = grad[bi, vi]
-            pts = Wv[body, vi] - nrm * rad[body, None]
+            pts = Wrv[body, vi] - nrm * rad[body, None]
             emit(body, np.full(len(body), -1), pts, nrm, dk, B + P, vi)
     # --- body pairs ------------------------------------------------------------------------------
     if B > 1:

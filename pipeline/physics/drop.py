@@ -36,10 +36,15 @@ class DropSettings:
     max_speed: float = 1.0                 # m/s, largest random initial speed
     max_spin: float = 6.0                  # rad/s, largest random initial spin
     max_penetration: float = 0.002         # m, deeper final penetration rejects the drop
-    room_thickness: float = 0.01           # m, half-thickness of the scan surface shell (objects rest this
-    #                                        far above the scanned surface). 5 mm measured worse on the
-    #                                        7-Scenes room (bench/physics.py: more bodies wedged in scan
-    #                                        clutter); thinner shells need the room mesh (exact CCD)
+    room_thickness: float = 0.01           # m, half-thickness of the scan surface shell while bodies fall
+    #                                        and tumble: it bridges small holes, keeps sweeps from
+    #                                        jumping through paper-thin surfaces and bodies from wedging
+    #                                        into scan clutter (5 mm measured worse on the 7-Scenes room)
+    rest_thickness: float = 0.001          # m: once every body sleeps on that shell, the shell shrinks to
+    #                                        this and the bodies settle again onto the surface itself
+    #                                        (they move by the difference, slowly: nothing tunnels or
+    #                                        wedges). >= room_thickness turns the settling off
+    settle_time: float = 3.0               # s, longest the settling onto the surface may take
     friction: float = 0.5                  # Coulomb coefficient
     spawn_tries: int = 200                 # samples per body before giving up
     floor_plane: bool = True               # a static plane at the scan's floor catches bodies that fall
@@ -231,8 +236,9 @@ def simulate_drop(bodies: list[Body], *, room: Room | None, up: np.ndarray, sett
         R_w2g = info.R_w2g
         bounds = (info.lo, info.hi)
         if settings.floor_plane:
-            # the shell's outer face (room_thickness above the floor) is where bodies rest elsewhere
-            fl = np.array([[*up, info.floor + settings.room_thickness]])
+            # under the floor (the lower edge of its 1 cm height bin): it only catches what falls
+            # through a hole; bodies rest on the scanned floor itself
+            fl = np.array([[*up, info.floor - 0.005]])
             planes = fl if planes is None else np.concatenate([np.asarray(planes, float).reshape(-1, 4), fl])
     else:
         R_w2g = gravity_frame(up)
@@ -311,10 +317,37 @@ def _run(model: Model, state: State, settings: DropSettings, *, R_w2g: np.ndarra
             break
     if verdict == "accepted" and np.any(left_room(model, state, R_w2g, floor, lo, hi)):
         verdict = "rejected:left-room"
+    settle = 0
+    if (verdict == "accepted" and np.all(state.asleep) and model.has_room
+            and settings.rest_thickness < model.room_thickness):
+        model, state, settle = settle_onto_surface(model, state, settings)
+        if np.any(left_room(model, state, R_w2g, floor, lo, hi)):
+            verdict = "rejected:left-room"
     pen = penetration(model, state)
     if verdict == "accepted" and not np.all(state.asleep):
         verdict = "rejected:never-settled"
     if verdict == "accepted" and pen > settings.max_penetration:
         verdict = "rejected:penetration"
     R, t = model_poses(model, state)
-    return DropResult(R, t, state.asleep.copy(), pen, verdict, state.time, k)
+    return DropResult(R, t, state.asleep.copy(), pen, verdict, state.time, k + settle)
+
+
+def settle_onto_surface(model: Model, state: State, settings: DropSettings) -> tuple[Model, State, int]:
+    """Shrink the room shell to ``settings.rest_thickness`` and step the woken bodies until they sleep
+    again (at most ``settings.settle_time``): bodies that came to rest on the shell come down onto the
+    scanned surface. Room contacts are now taken at the object's own hull vertices, not at the few
+    vertices of its collision hull (whose faces cut up to 8 mm inside the LM-O models): against a thin
+    shell the object, not its proxy, must stop at the surface. Returns the thin-shell model, the state
+    and the steps taken."""
+    import dataclasses
+
+    model = dataclasses.replace(model, room_thickness=float(settings.rest_thickness), exact_room_contacts=True)
+    B = model.nbody
+    state = state.replace(asleep=np.zeros(B, bool), rest_time=np.zeros(B), anchor_pos=None, anchor_quat=None)
+    n = int(round(settings.settle_time / model.opt.timestep))
+    k = 0
+    for k in range(1, n + 1):
+        state = step(model, state)
+        if np.all(state.asleep):
+            break
+    return model, state, k

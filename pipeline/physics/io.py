@@ -77,6 +77,29 @@ def hull_planes(points: np.ndarray, *, max_vertices: int = 48, max_points: int =
     return verts, planes[np.sort(idx)]
 
 
+def surface_points(points: np.ndarray, max_points: int = 256) -> np.ndarray:
+    """The body's points that touch the room: its convex hull's vertices, a farthest-point subset of at
+    most ``max_points`` of them (the first is the one farthest from their mean).
+
+    The collision hull (:func:`hull_planes`) keeps few vertices, so its faces cut up to several
+    millimetres inside a rounded object; against the scanned surface the object itself must touch, so
+    room contacts are taken at these points instead.
+    """
+    from scipy.spatial import ConvexHull
+
+    pts = np.asarray(points, float)
+    verts = pts[ConvexHull(pts).vertices]
+    if len(verts) <= max_points:
+        return verts
+    chosen = [int(np.argmax(np.linalg.norm(verts - verts.mean(0), axis=1)))]
+    d = np.linalg.norm(verts - verts[chosen[0]], axis=1)
+    for _ in range(max_points - 1):
+        i = int(np.argmax(d))
+        chosen.append(i)
+        d = np.minimum(d, np.linalg.norm(verts - verts[i], axis=1))
+    return verts[np.array(chosen)]
+
+
 def box_body(half_extents, mass: float, *, friction: float = -1.0) -> Body:
     """A solid box centred at the origin with the given half extents (m)."""
     h = np.asarray(half_extents, float)
@@ -126,7 +149,7 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
     if opt.timestep <= 0 or not math.isfinite(opt.timestep):
         raise InputError(f"physics options: timestep = {opt.timestep}; must be a positive number of seconds")
     B = len(bodies)
-    masses, inertias, kinds, radii, frics, verts, plns, Rs, ts, bounds = ([] for _ in range(10))
+    masses, inertias, kinds, radii, frics, verts, rverts, plns, Rs, ts, bounds = ([] for _ in range(11))
     for i, b in enumerate(bodies):
         m = float(b.mass)
         if not (m > 0 and math.isfinite(m)):
@@ -153,6 +176,7 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
             radii.append(float(b.radius))
             vb = np.zeros((1, 3))
             pb = np.zeros((0, 4))
+            rb = vb
             bound = float(b.radius)
         else:
             pts = np.asarray(b.vertices, float).reshape(-1, 3)
@@ -162,22 +186,26 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
             pts_b = pts @ R_m2b.T + t_m2b
             ck = (max_vertices, pts_b.tobytes())
             if ck in b.hull_cache:
-                vb, pb = b.hull_cache[ck]
+                vb, pb, rb = b.hull_cache[ck]
             else:
                 try:
                     vb, pb = hull_planes(pts_b, max_vertices=max_vertices)
+                    rb = surface_points(pts_b)
                 except Exception as e:  # qhull errors: flat or degenerate point sets
                     raise InputError(f"physics model: body {i} vertices span no volume ({e}); "
                                      f"a collider needs a 3D hull") from None
                 b.hull_cache.clear()
-                b.hull_cache[ck] = (vb, pb)
+                b.hull_cache[ck] = (vb, pb, rb)
             kinds.append(KIND_POLY)
             radii.append(0.0)
             bound = float(np.linalg.norm(vb, axis=1).max())
+            if room is not None:
+                bound = max(bound, float(np.linalg.norm(rb, axis=1).max()))
         masses.append(m)
         inertias.append(w)
         frics.append(fr)
         verts.append(vb)
+        rverts.append(rb)
         plns.append(pb)
         Rs.append(R_m2b)
         ts.append(t_m2b)
@@ -185,12 +213,16 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
     V = max([len(v) for v in verts], default=1)
     F = max([len(p) for p in plns], default=1) or 1
     body_verts = np.zeros((B, V, 3))
+    Vr = max([len(v) for v in rverts], default=1)
+    room_verts = np.zeros((B, Vr, 3))
     body_planes = np.zeros((B, F, 4))
     body_planes[:, :, 3] = PAD_PLANE_OFFSET
     for i in range(B):
         n = len(verts[i])
         body_verts[i, :n] = verts[i]
         body_verts[i, n:] = verts[i][0]
+        room_verts[i, :len(rverts[i])] = rverts[i]
+        room_verts[i, len(rverts[i]):] = rverts[i][0]
         body_planes[i, :len(plns[i])] = plns[i]
     pl = np.zeros((0, 4)) if planes is None else np.asarray(planes, float).reshape(-1, 4)
     _check_finite("planes", pl)
@@ -215,7 +247,8 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
                  body_bound=np.array(bounds).reshape(B), body_R_m2b=np.array(Rs).reshape(B, 3, 3),
                  body_t_m2b=np.array(ts).reshape(B, 3), plane=pl, room_origin=origin,
                  room_spacing=spacing, room_udf=udf, room_thickness=float(room_thickness), opt=opt,
-                 room_mesh=room_mesh)
+                 room_mesh=room_mesh, body_room_verts=room_verts if room is not None else None,
+                 body_room_nvert=np.array([len(v) for v in rverts], np.int32).reshape(B) if room is not None else None)
 
 
 def make_state(model: Model, R_m2w: np.ndarray, t_m2w: np.ndarray, *, vel: np.ndarray | None = None,

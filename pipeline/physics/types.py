@@ -90,6 +90,12 @@ class Model:
     room_thickness: float        # m, the surface counts as a shell of this half-thickness
     opt: Options = field(default_factory=Options)
     room_mesh: RoomMesh | None = None  # exact closest-point queries on the room surface, None = grid only
+    body_room_verts: np.ndarray | None = None  # (B, Vr, 3) float64, m, body frame: the object's own hull
+    #                                            vertices (padded by repetition), built with a room
+    body_room_nvert: np.ndarray | None = None  # (B,) int32, valid entries of body_room_verts
+    exact_room_contacts: bool = False  # room contacts at body_room_verts (the object itself touches the
+    #                                    surface) instead of body_verts (the collision hull, inside it by
+    #                                    up to millimetres: fine against a thick shell)
 
     @property
     def nbody(self) -> int:
