@@ -43,14 +43,7 @@ def hull_planes(points: np.ndarray, *, max_vertices: int = 48, max_points: int =
     hull = ConvexHull(pts)
     verts = pts[hull.vertices]
     if len(verts) > max_vertices:
-        # farthest-point sampling keeps the extreme shape; start from the point farthest from the mean
-        chosen = [int(np.argmax(np.linalg.norm(verts - verts.mean(0), axis=1)))]
-        d = np.linalg.norm(verts - verts[chosen[0]], axis=1)
-        for _ in range(max_vertices - 1):
-            i = int(np.argmax(d))
-            chosen.append(i)
-            d = np.minimum(d, np.linalg.norm(verts - verts[i], axis=1))
-        verts = verts[np.array(chosen)]
+        verts = farthest_points(verts, max_vertices)
         hull = ConvexHull(verts)
         verts = verts[hull.vertices]
         hull = ConvexHull(verts)
@@ -89,11 +82,15 @@ def surface_points(points: np.ndarray, max_points: int = 256) -> np.ndarray:
 
     pts = np.asarray(points, float)
     verts = pts[ConvexHull(pts).vertices]
-    if len(verts) <= max_points:
-        return verts
+    return verts if len(verts) <= max_points else farthest_points(verts, max_points)
+
+
+def farthest_points(verts: np.ndarray, k: int) -> np.ndarray:
+    """``k`` of ``verts`` by farthest-point sampling, which keeps the extreme shape; the first is the
+    point farthest from their mean."""
     chosen = [int(np.argmax(np.linalg.norm(verts - verts.mean(0), axis=1)))]
     d = np.linalg.norm(verts - verts[chosen[0]], axis=1)
-    for _ in range(max_points - 1):
+    for _ in range(k - 1):
         i = int(np.argmax(d))
         chosen.append(i)
         d = np.minimum(d, np.linalg.norm(verts - verts[i], axis=1))
