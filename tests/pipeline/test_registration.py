@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
+from bench.reference import depth_photo_edge_distance
 from pipeline.registration import estimate_color_camera, pose_from_params
 from pipeline.scanformats.detect import read_scan
 
@@ -131,7 +132,17 @@ def test_bad_input_is_unreliable_not_an_error(scans, tmp_path):
     # Photos of other views: nothing lines up.
     other = estimate_color_camera(dataclasses.replace(scan, color_paths=scan.color_paths[1:] + scan.color_paths[:1]))
     assert not other.reliable and ("no match" in other.reason or "no improvement" in other.reason), other.reason
-    for r in (one, no_depth, flat, other):
+    # Blurred photos (of the offset scan): a little blur still fits; blurred past having edges, it falls back.
+    offset, blurred = scans[0], {}
+    for sigma in (3, 16):
+        paths = []
+        for i, p in enumerate(offset.color_paths):
+            paths.append(str(tmp_path / f"blur{sigma}_{i}.png"))
+            cv2.imwrite(paths[-1], cv2.GaussianBlur(cv2.imread(p), (0, 0), sigma))
+        blurred[sigma] = estimate_color_camera(dataclasses.replace(offset, color_paths=tuple(paths)))
+    assert blurred[3].reliable and abs(blurred[3].color_K[0, 0] / K_C[0, 0] - 1) < 0.01
+    assert not blurred[16].reliable and "photo without edges: 8" in blurred[16].reason, blurred[16].reason
+    for r in (one, no_depth, flat, other, blurred[16]):
         assert "\n" not in r.reason and r.color_K.shape == (3, 3)
 
 
@@ -210,29 +221,6 @@ def test_real_redkitchen_edges_line_up(shared_data):
     assert 510 < reg.color_K[0, 0] < 540 and np.linalg.norm(reg.T_d2c[:3, 3]) < 0.05
 
 
-def _opencv_edge_distance(depth: np.ndarray, rgb: np.ndarray) -> float:
-    """Median distance (px) from depth discontinuities to the photo's Canny edges, with OpenCV and NumPy
-    only (not the module's own measure): a pixel is a depth edge when a 4-neighbour's depth is more than
-    5 % + 3 cm farther away."""
-    near = np.zeros(depth.shape, bool)
-    for axis in (0, 1):
-        a, b = (depth[:-1], depth[1:]) if axis == 0 else (depth[:, :-1], depth[:, 1:])
-        ok = (a > 0) & (b > 0)
-        jump = ok & (np.abs(a - b) > 0.05 * np.minimum(a, b) + 0.03)
-        first = jump & (a < b)
-        second = jump & (b < a)
-        if axis == 0:
-            near[:-1] |= first
-            near[1:] |= second
-        else:
-            near[:, :-1] |= first
-            near[:, 1:] |= second
-    gray = cv2.GaussianBlur(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), (0, 0), 1.0)
-    edges = cv2.Canny(gray, 20, 60)
-    dist = cv2.distanceTransform((edges == 0).astype(np.uint8), cv2.DIST_L2, 5)
-    return float(np.median(dist[near])) if near.any() else float("nan")
-
-
 @pytest.mark.slow
 def test_real_redkitchen_registered_depth_meets_held_out_photos(shared_data):
     """Fit on the even frames; on the odd ones the depth that every later stage reads (and the dataset
@@ -247,6 +235,6 @@ def test_real_redkitchen_registered_depth_meets_held_out_photos(shared_data):
     held = dataclasses.replace(odd, K=np.repeat(fitted.K[:1], odd.num_frames, 0),
                                T_c2w=odd.T_c2w @ np.linalg.inv(np.asarray(fitted.meta["T_d2c"])),
                                meta=dict(odd.meta, T_d2c=fitted.meta["T_d2c"]))
-    after = [_opencv_edge_distance(read_depth(held, i), read_color(held, i)) for i in range(held.num_frames)]
-    before = [_opencv_edge_distance(read_depth(odd, i), read_color(odd, i)) for i in range(odd.num_frames)]
+    after = [depth_photo_edge_distance(read_depth(held, i), read_color(held, i)) for i in range(held.num_frames)]
+    before = [depth_photo_edge_distance(read_depth(odd, i), read_color(odd, i)) for i in range(odd.num_frames)]
     assert np.median(after) < 1.6 and np.median(before) > 2.5, (np.median(before), np.median(after))
