@@ -29,6 +29,7 @@ log = logging.getLogger(__name__)
 FOCUS_MIN_HALF_WIDTH = 0.25   # m, smallest half-width of a view-focused spawn square
 FOCUS_SPREAD = 1.2            # half-width = this x sqrt(objects) x median bounding radius (room to fall apart)
 FOCUS_TRIES = 3               # focus cells tried before falling back to the whole-room spawn box
+SPAWN_CLEARANCE = 0.02        # m, a view-focused slab starts this far above the seen surface + the largest bound
 
 
 def body_of(proxy: dict[str, np.ndarray], friction: float):
@@ -94,9 +95,13 @@ def simulate(cfg: SimulateConfig, *, scene: str, drop: int, room, up: np.ndarray
                  for i in chosen]
         half = max(FOCUS_MIN_HALF_WIDTH, FOCUS_SPREAD * np.sqrt(n) * float(np.median(radii)))
         for _ in range(FOCUS_TRIES):
-            c = sample_focus(view, rng)
-            r = simulate_drop(bodies, room=room, up=up, settings=replace(st, spawn_xy=1.0), rng=rng,
-                              spawn_bounds=focus_bounds(c, half, room_lo, room_hi), info=info)
+            c = view.centers[sample_focus(view, rng)]
+            # the slab's bottom clear, by the largest body, of the highest surface seen under the square
+            under = np.all(np.abs(view.centers - c) <= half + 0.5 * view.cell, axis=1)
+            lowest = float(view.top[under].max()) + max(radii) + st.room_thickness + SPAWN_CLEARANCE
+            bounds, spawn_z = focus_bounds(c, half, room_lo, room_hi, st.spawn_z, lowest)
+            r = simulate_drop(bodies, room=room, up=up, settings=replace(st, spawn_xy=1.0, spawn_z=spawn_z),
+                              rng=rng, spawn_bounds=bounds, info=info)
             if r.verdict != "rejected:spawn":
                 facts = {"focus_xy": [round(float(v), 6) for v in c], "focus_half_width": round(half, 6)}
                 break
@@ -167,12 +172,25 @@ def _view_map(run_dir: Path, scan, room, R_w2g: np.ndarray | None = None):
         frames = load_selection(run_dir, scan.name)
     except UserError:
         return None
-    vm = view_map(scan, frames, room_frame(room, scan.up_w) if R_w2g is None else R_w2g)
+    vm = view_map(scan, frames, room_frame(room, scan.up_w) if R_w2g is None else R_w2g,
+                  surface_distance=lambda p: grid_distance(room, p))
     if not len(vm.score):
         log.warning("%s: no kept frame sees an upward-facing surface; drops spawn over the whole room",
                     scan.name)
         return None
     return vm
+
+
+def grid_distance(room, points: np.ndarray) -> np.ndarray:
+    """Distance (m) of world ``points`` (P, 3) to the room surface at their nearest node of the room's
+    distance grid; ``inf`` outside the grid."""
+    g = np.round((np.asarray(points, float) - room.origin) / room.spacing).astype(np.int64)
+    n = np.array(room.udf.shape)
+    inside = np.all((g >= 0) & (g < n), axis=1)
+    out = np.full(len(g), np.inf)
+    gi = g[inside]
+    out[inside] = room.udf[gi[:, 0], gi[:, 1], gi[:, 2]]
+    return out
 
 
 def finish(ctx: StageContext, results: dict[str, dict]) -> None:

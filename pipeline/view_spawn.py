@@ -40,6 +40,9 @@ class ViewMap:
         (C,) float64 summed per-frame weights (0..number of frames).
     frames
         Number of frames that voted.
+    top
+        (C,) float64 height (gravity-frame z) of the highest upward-facing surface a frame saw in the
+        cell, metres: what a drop over the cell lands on first (a table, the clutter on it).
     """
 
     R_w2g: np.ndarray
@@ -47,6 +50,7 @@ class ViewMap:
     centers: np.ndarray
     score: np.ndarray
     frames: int
+    top: np.ndarray
 
 
 def frame_support_points(depth: np.ndarray, K: np.ndarray, T_c2w: np.ndarray, *, stride: int,
@@ -103,7 +107,7 @@ def frame_support_points(depth: np.ndarray, K: np.ndarray, T_c2w: np.ndarray, *,
 
 def view_map(scan, frames, R_w2g: np.ndarray, *, cell: float = 0.2, stride: int | None = None,
              margin: float = 0.15, near: float = 1.5, max_depth: float = 4.0, min_up: float = 0.85,
-             min_points: int = 3) -> ViewMap:
+             min_points: int = 3, surface_distance=None, max_off_surface: float = 0.05) -> ViewMap:
     """Vote the kept ``frames`` of ``scan`` for horizontal cells with upward-facing visible surface.
 
     Frames without depth, or whose depth cannot be read, do not vote (logged).
@@ -130,6 +134,10 @@ def view_map(scan, frames, R_w2g: np.ndarray, *, cell: float = 0.2, stride: int 
         Smallest dot product of the surface normal with up for a supporting surface.
     min_points
         Grid points a frame needs in a cell for the cell to count as seen.
+    surface_distance
+        Optional function of (P, 3) world points giving their distance to the room mesh, metres: points
+        farther than ``max_off_surface`` do not vote (the depth sees a surface the mesh lacks, e.g. a
+        capture's mesh cropped to a table: nothing to land on there).
     """
     from pipeline.errors import UserError
     from pipeline.scanformats.common import read_depth
@@ -137,6 +145,7 @@ def view_map(scan, frames, R_w2g: np.ndarray, *, cell: float = 0.2, stride: int 
     R_w2g = np.asarray(R_w2g, float)
     up = R_w2g[2]
     votes: dict[tuple[int, int], float] = {}
+    tops: dict[tuple[int, int], float] = {}
     voted = 0
     for f in frames:
         f = int(f)
@@ -151,6 +160,8 @@ def view_map(scan, frames, R_w2g: np.ndarray, *, cell: float = 0.2, stride: int 
         pts, nrm = frame_support_points(depth, scan.K[f], scan.T_c2w[f], stride=s, margin=margin,
                                         max_depth=max_depth)
         keep = nrm @ up > min_up
+        if surface_distance is not None and np.any(keep):
+            keep[keep] = surface_distance(pts[keep]) <= max_off_surface
         if not np.any(keep):
             voted += 1
             continue
@@ -163,32 +174,49 @@ def view_map(scan, frames, R_w2g: np.ndarray, *, cell: float = 0.2, stride: int 
         inv = inv.reshape(-1)
         dmin = np.full(len(keys), np.inf)
         np.minimum.at(dmin, inv, dist)
+        zmax = np.full(len(keys), -np.inf)
+        np.maximum.at(zmax, inv, g[:, 2])
         w = np.minimum(1.0, (near / np.maximum(dmin, 1e-6)) ** 2)
-        for k, c, wk in zip(map(tuple, keys.tolist()), counts, w):
+        for k, c, wk, zk in zip(map(tuple, keys.tolist()), counts, w, zmax):
             if c >= min_points:
                 votes[k] = votes.get(k, 0.0) + float(wk)
+                tops[k] = max(tops.get(k, -np.inf), float(zk))
         voted += 1
     if not votes:
-        return ViewMap(R_w2g, cell, np.zeros((0, 2)), np.zeros(0), voted)
+        return ViewMap(R_w2g, cell, np.zeros((0, 2)), np.zeros(0), voted, np.zeros(0))
     ks = sorted(votes)
     centers = (np.asarray(ks, float) + 0.5) * cell
-    return ViewMap(R_w2g, cell, centers, np.asarray([votes[k] for k in ks], float), voted)
+    return ViewMap(R_w2g, cell, centers, np.asarray([votes[k] for k in ks], float), voted,
+                   np.asarray([tops[k] for k in ks], float))
 
 
-def sample_focus(vm: ViewMap, rng: np.random.Generator, *, power: float = 2.0) -> np.ndarray | None:
-    """A cell centre (2,) sampled with probability ``score ** power`` (None when no cell was seen)."""
+def sample_focus(vm: ViewMap, rng: np.random.Generator, *, power: float = 2.0) -> int | None:
+    """The index of a cell sampled with probability ``score ** power`` (None when no cell was seen)."""
     if len(vm.score) == 0 or not np.any(vm.score > 0):
         return None
     p = vm.score ** power
-    i = int(rng.choice(len(p), p=p / p.sum()))
-    return vm.centers[i].copy()
+    return int(rng.choice(len(p), p=p / p.sum()))
 
 
-def focus_bounds(center_xy: np.ndarray, half_width: float, room_lo: np.ndarray, room_hi: np.ndarray
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Spawn bounds (lo, hi) (3,) in the gravity frame: a square of ``half_width`` around
-    ``center_xy`` horizontally, the room's floor-to-top range vertically."""
+def focus_bounds(center_xy: np.ndarray, half_width: float, room_lo: np.ndarray, room_hi: np.ndarray,
+                 spawn_z: tuple[float, float], lowest: float = -np.inf
+                 ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[float, float]]:
+    """Spawn bounds (lo, hi) (3,) in the gravity frame and the spawn slab (fractions of their height) for
+    a drop over ``center_xy``: a square of ``half_width`` around it horizontally; vertically the slab
+    ``spawn_z`` of the room's floor-to-top range, raised (same thickness) where its bottom is below
+    ``lowest`` (a height clear of the surfaces seen there).
+
+    A whole room's slab is far above its tables; a capture that is not a room (a table cropped out of a
+    scan, one view of a counter) has a height range of a few decimetres, and its slab would lie inside
+    the clutter on the table. The bounds' bottom stays the room's floor, so the spawn check finds the
+    surface below a spawn point either way.
+    """
     c = np.asarray(center_xy, float)
     lo = np.array([c[0] - half_width, c[1] - half_width, room_lo[2]])
     hi = np.array([c[0] + half_width, c[1] + half_width, room_hi[2]])
-    return lo, hi
+    ext = hi[2] - lo[2]
+    z0, z1 = lo[2] + spawn_z[0] * ext, lo[2] + spawn_z[1] * ext
+    if z0 >= lowest:
+        return (lo, hi), tuple(spawn_z)
+    hi[2] = lowest + (z1 - z0)
+    return (lo, hi), ((lowest - lo[2]) / (hi[2] - lo[2]), 1.0)
