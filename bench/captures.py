@@ -1,5 +1,6 @@
-"""A one-view scan made from one real redkitchen frame: its photo, depth and pose in the 7-Scenes layout, and
-a mesh made from that frame's depth alone (a capture that does not surround its camera, issue 20)."""
+"""Partial captures made from real data (issue 20): a one-view scan from one redkitchen frame (its photo, depth
+and pose in the 7-Scenes layout) with a mesh made from that frame's depth alone, and a table cropped out of it.
+Neither surrounds its camera; the benchmark (bench/partial.py) and the tests drop objects onto both."""
 
 from __future__ import annotations
 
@@ -40,3 +41,19 @@ def one_view_scan(shared_data: Path, out: Path, frame: int = 0, stride: int = 8,
     P = np.nan_to_num(P)
     (out / "mesh.ply").write_bytes(ply_bytes(P, F, None))
     return scan, out / "mesh.ply", P, F
+
+
+def cropped_table_scan(shared_data: Path, out: Path, frame: int = 0, band: tuple[float, float] = (0.55, 1.0)
+                       ) -> tuple[Path, Path, np.ndarray, np.ndarray]:
+    """:func:`one_view_scan` with its mesh cropped to the faces whose vertices all lie ``band`` metres above
+    the frame's floor (the lowest 2 % of heights along the scan's up): a table and counter without the
+    floor, as a tabletop capture has them. Returns the scan folder, ``out/table.ply`` and that mesh."""
+    scan, _, P, F = one_view_scan(shared_data, out, frame)
+    up = -np.loadtxt(scan / "gravity-direction.txt").ravel()
+    up /= np.linalg.norm(up)
+    h = P @ up
+    used = np.unique(F)
+    h0 = np.percentile(h[used], 2)
+    keep = np.all((h[F] > h0 + band[0]) & (h[F] < h0 + band[1]), axis=1)
+    (out / "table.ply").write_bytes(ply_bytes(P, F[keep], None))
+    return scan, out / "table.ply", P, F[keep]
