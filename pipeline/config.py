@@ -82,7 +82,7 @@ class ScanConfig:
                                     "scan folders, or 'builtin:demo' for the built-in synthetic scan",
                                     path="dir")
     format: str = option("auto", "scan layout; auto = detect from the folder's files",
-                         choices=("auto", "7scenes", "3rscan", "scannet", "transforms"))
+                         choices=("auto", "7scenes", "3rscan", "scannet", "transforms", "bop"))
     mesh: str = option("", "room mesh file for layouts without one (transforms.json); empty = reconstruct",
                        path="file")
     max_frames: int = option(0, "use at most this many frames per scan, evenly spaced; 0 = all", min=0)

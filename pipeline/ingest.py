@@ -145,7 +145,7 @@ def color_camera(scan: Scan, cfg: Config) -> tuple[Scan, dict]:
     return scan, reg
 
 
-def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -> Scan:
+def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config, frame: int | None = None) -> Scan:
     """Read one scan folder, build its room mesh and up direction, write them to ``out_dir``.
 
     Parameters
@@ -154,6 +154,7 @@ def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -
     name : scene name (folder-safe).
     out_dir : ``RUN/ingest/<name>``.
     cfg : the run's configuration (``scan`` and ``ingest`` tables).
+    frame : one image of a BOP scene without world poses (:func:`pipeline.scanformats.detect.scan_units`).
 
     Returns
     -------
@@ -165,7 +166,7 @@ def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -
     out_dir = Path(out_dir)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", IngestWarning)
-        scan = read_scan(path, cfg.scan.format)
+        scan = read_scan(path, cfg.scan.format, frame)
     notes = [str(w.message) for w in caught if issubclass(w.category, IngestWarning)]
     broken = [str(w.message) for w in caught if issubclass(w.category, BadFrameWarning)]
     for w in caught:  # re-issue so callers (and pytest) see them; they are also kept in scan.json
@@ -213,8 +214,19 @@ def ingest_scan(path: str | Path, name: str, out_dir: str | Path, cfg: Config) -
 # ---------------------------------------------------------------------------------------------------
 
 def plan(ctx: StageContext) -> list[Item]:
-    names = scene_names(ctx.cfg.scan.paths)
-    items = [Item(key=n, data={"path": p}) for n, p in zip(names, ctx.cfg.scan.paths)]
+    """One item per scan: per entry of ``scan.paths``, or per image of a BOP scene without world poses
+    (scene ``<name>-NNNNNN``, :func:`pipeline.scanformats.detect.scan_units`)."""
+    from pipeline.scanformats.detect import scan_units
+
+    items, used = [], set()
+    for n, p in zip(scene_names(ctx.cfg.scan.paths), ctx.cfg.scan.paths):
+        units = [None] if p.startswith(BUILTIN_PREFIX) else scan_units(p, ctx.cfg.scan.format)
+        for u in units:
+            key = n if u is None else f"{n}-{u:06d}"
+            while key in used:
+                key += "_"
+            used.add(key)
+            items.append(Item(key=key, data={"path": p} if u is None else {"path": p, "frame": int(u)}))
     items.append(Item(key=OBJECTS_KEY, data={"paths": list(ctx.cfg.objects.paths)}))
     return items
 
@@ -230,7 +242,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     path = item.data["path"]
     if path.startswith(BUILTIN_PREFIX):
         path = str(builtin_scan_dir(ctx.run_dir, path[len(BUILTIN_PREFIX):]))
-    scan = ingest_scan(path, item.key, ctx.stage_dir / item.key, ctx.cfg)
+    scan = ingest_scan(path, item.key, ctx.stage_dir / item.key, ctx.cfg, frame=item.data.get("frame"))
     return {"scene": scan.name, "format": scan.format, "frames": scan.num_frames,
             "skipped": scan.meta.get("skipped", {}), "mesh": scan.meta["mesh"],
             "mesh_faces": scan.meta["mesh_faces"], "up_source": scan.meta["up_source"],

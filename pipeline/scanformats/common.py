@@ -220,10 +220,13 @@ def index_files(folder: Path, pattern: str) -> dict[int, Path]:
 
 
 def match_frames(root: Path, colors: dict[int, Path], depths: dict[int, Path] | None,
-                 poses: dict[int, np.ndarray | None], pose_files: dict[int, Path]) -> tuple[list[int], dict]:
+                 poses: dict[int, np.ndarray | None], pose_files: dict[int, Path], *,
+                 regular_numbering: bool = True) -> tuple[list[int], dict]:
     """Frame numbers that have a colour image, a valid pose and (when the layout has depth) a depth map.
 
-    Frames lacking any of these are skipped with one counted :class:`IngestWarning` per cause.
+    Frames lacking any of these are skipped with one counted :class:`IngestWarning` per cause; gaps in
+    the numbering are warned about too, unless ``regular_numbering`` is False (a layout whose frames are
+    a selection, like a BOP scene's images).
     Returns ``(kept frame ids sorted, skipped counts by cause)``.
     """
     ids = sorted(set(colors) | set(pose_files) | (set(depths) if depths is not None else set()))
@@ -254,7 +257,7 @@ def match_frames(root: Path, colors: dict[int, Path], depths: dict[int, Path] | 
         causes = ", ".join(f"{len(lst)} {why[c]}" for c, lst in skipped.items() if lst)
         raise InputError(f"{root}: no usable frame: 0 of {len(ids)} frame number(s) seen have a colour image, "
                          f"a depth map and a valid pose ({causes or 'none seen'}); check the scan folder")
-    if len(ids) >= 3:  # gaps in the files' numbering (skipped frames are reported above)
+    if regular_numbering and len(ids) >= 3:  # gaps in the files' numbering (skipped frames are reported above)
         steps = np.diff(np.asarray(ids))
         step = int(np.median(steps))
         gaps = int(np.sum(steps != step))

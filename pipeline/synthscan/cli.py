@@ -12,7 +12,7 @@ from pathlib import Path
 
 from pipeline.errors import UserError
 
-LAYOUT_CHOICES = ("7scenes", "3rscan", "scannet", "transforms")
+LAYOUT_CHOICES = ("7scenes", "3rscan", "scannet", "transforms", "bop")
 
 
 def _size(text: str) -> tuple[int, int]:

@@ -71,7 +71,7 @@ def layout_cameras(layout: str, width: int, height: int, rng: np.random.Generato
     """Intrinsics like the real sensor of each layout, scaled to ``width`` x ``height`` (colour)."""
     from pipeline.synthscan.trajectory import intrinsics
 
-    if layout == "7scenes":      # Kinect v1: f = 585 px at 640 x 480, depth registered to colour
+    if layout in ("7scenes", "bop"):   # Kinect v1 / Primesense: f = 585 px at 640 x 480, depth registered
         K = intrinsics(width, height, 585.0 / 640.0, rng)
         return Cameras(K, width, height, K.copy(), width, height)
     if layout == "transforms":   # phone: ~65 degree horizontal field of view
@@ -175,7 +175,7 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
     Parameters
     ----------
     out_dir : folder to write (created; must be empty or hold an earlier make-scan output, which is replaced)
-    layout : "7scenes" | "3rscan" | "scannet" | "transforms"
+    layout : "7scenes" | "3rscan" | "scannet" | "transforms" | "bop"
     seed : int >= 0
     width, height : colour image size, pixels (depth is smaller for scannet and 3rscan, as in the real data)
     frames : number of frames

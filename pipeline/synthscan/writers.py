@@ -1,4 +1,4 @@
-"""Writers for the four real scan layouts, and the mesh files they carry.
+"""Writers for the five real scan layouts, and the mesh files they carry.
 
 Each layout is written the way its real producer writes it:
 
@@ -21,6 +21,9 @@ Each layout is written the way its real producer writes it:
   x right, y up, z backward), ``ply_file_path`` naming the room mesh (``mesh.ply``). Depth PNGs are
   uint16 mm (nerfstudio's default ``depth_unit_scale_factor`` 1e-3). ``cx, cy`` follow nerfstudio's
   pixel convention (pixel ``i`` is centred at ``i + 0.5``), so they are the OpenCV values + 0.5.
+- ``bop`` (a BOP dataset's scene folder, as bop_toolkit writes it): ``rgb/NNNNNN.png``, ``depth/NNNNNN.png``
+  (uint16, ``depth_scale`` 1.0: millimetres), ``scene_camera.json`` (per image: ``cam_K``, ``depth_scale``,
+  ``cam_R_w2c``, ``cam_t_w2c`` in mm). No mesh.
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ import numpy as np
 from pipeline.camera import CV_TO_GL
 from pipeline.io import atomic_write_bytes, atomic_write_json, encode_image
 
-LAYOUTS = ("7scenes", "3rscan", "scannet", "transforms")
+LAYOUTS = ("7scenes", "3rscan", "scannet", "transforms", "bop")
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,8 @@ def frame_files(layout: str, i: int) -> FrameFiles:
         return FrameFiles(f"color/{i}.jpg", f"depth/{i}.png", f"pose/{i}.txt")
     if layout == "transforms":
         return FrameFiles(f"images/frame_{i + 1:05d}.png", f"depth/frame_{i + 1:05d}.png", "")
+    if layout == "bop":
+        return FrameFiles(f"rgb/{i:06d}.png", f"depth/{i:06d}.png", "")
     raise ValueError(f"unknown layout {layout!r}")
 
 
@@ -265,6 +270,16 @@ def write_static(out: Path, layout: str, *, scene: str, K: np.ndarray, width: in
         atomic_write_json(out / "transforms.json", doc)
         written.append("transforms.json")
         put("mesh.ply", ply_bytes(mesh_vertices, mesh_faces, mesh_colors))
+    elif layout == "bop":
+        cams = {}
+        for i in range(len(poses)):
+            T_w2c = np.linalg.inv(poses[i])
+            cams[str(i)] = {"cam_K": np.asarray(K, float).ravel().tolist(), "depth_scale": 1.0}
+            if pose_valid[i]:
+                cams[str(i)].update(cam_R_w2c=T_w2c[:3, :3].ravel().tolist(),
+                                    cam_t_w2c=(1000.0 * T_w2c[:3, 3]).tolist())
+        atomic_write_json(out / "scene_camera.json", cams)
+        written.append("scene_camera.json")
     else:
         raise ValueError(f"unknown layout {layout!r}")
     return written

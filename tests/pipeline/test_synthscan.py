@@ -44,7 +44,7 @@ def truth(scan: Path) -> tuple[dict, dict]:
 
 
 # ---------------------------------------------------------------------------------------------------
-# Independent readers of the four layouts
+# Independent readers of the five layouts
 # ---------------------------------------------------------------------------------------------------
 
 def read_7scenes(scan: Path) -> dict:
@@ -96,7 +96,23 @@ def read_transforms(scan: Path) -> dict:
             "n_color": len(doc["frames"])}
 
 
-READERS = {"7scenes": read_7scenes, "3rscan": read_3rscan, "scannet": read_scannet, "transforms": read_transforms}
+def read_bop(scan: Path) -> dict:
+    cams = json.loads((scan / "scene_camera.json").read_text())
+    ids = sorted(cams, key=int)
+    K = np.array(cams[ids[0]]["cam_K"], float).reshape(3, 3)
+    poses = []
+    for i in ids:
+        T = np.eye(4)      # BOP: x_cam = R_w2c x_world + t_w2c (mm)
+        T[:3, :3], T[:3, 3] = np.reshape(cams[i]["cam_R_w2c"], (3, 3)), np.array(cams[i]["cam_t_w2c"]) / 1000
+        poses.append(np.linalg.inv(T))
+    color = cv2.imread(str(scan / "rgb" / f"{int(ids[0]):06d}.png"), cv2.IMREAD_UNCHANGED)
+    depth = cv2.imread(str(scan / "depth" / f"{int(ids[0]):06d}.png"), cv2.IMREAD_UNCHANGED)
+    return {"K": K, "depth_K": K, "T_c2w": np.stack(poses), "color": color, "depth": depth, "cams": cams,
+            "n_color": len(list((scan / "rgb").glob("*.png")))}
+
+
+READERS = {"7scenes": read_7scenes, "3rscan": read_3rscan, "scannet": read_scannet, "transforms": read_transforms,
+           "bop": read_bop}
 
 
 def read_ply(path: Path) -> tuple[list[str], np.ndarray, np.ndarray]:
@@ -208,7 +224,7 @@ def ingest_back(scan: Path, run_dir: Path):
 
 
 @pytest.mark.parametrize("layout", [pytest.param("7scenes", marks=pytest.mark.slow), "3rscan", "scannet",
-                                    "transforms"])
+                                    "transforms", "bop"])
 def test_round_trip_through_ingest(scans, tmp_path, layout, recwarn):
     from pipeline import ingest
 
