@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import InputError
-from pipeline.scanformats.common import (check_image_sizes, check_intrinsics, check_pose, index_files,
-                                         match_frames)
+from pipeline.scanformats.common import (BadFrameWarning, check_image_sizes, check_intrinsics, check_pose,
+                                         index_files, match_frames, warn)
 from pipeline.types import Scan
 
 FORMAT = "bop"
@@ -73,6 +73,18 @@ def _numbers(cam: dict, key: str, n: int, path: Path, im_id: int) -> np.ndarray 
         raise InputError(f"{path}: image {im_id}: {key} must be {n} finite numbers, found {str(v)[:60]}; "
                          f"restore the file from the dataset")
     return a
+
+
+def _camera(cam: dict, path: Path, im_id: int) -> tuple[np.ndarray, float]:
+    """``cam_K`` (3, 3) and ``depth_scale`` (mm per unit, 1 when absent) of one image's entry."""
+    k = _numbers(cam, "cam_K", 9, path, im_id)
+    if k is None:
+        raise InputError(f"{path}: image {im_id} has no cam_K; restore the file from the dataset")
+    s = cam.get("depth_scale", 1.0)
+    if not isinstance(s, (int, float)) or isinstance(s, bool) or not math.isfinite(s) or s <= 0:
+        raise InputError(f"{path}: image {im_id}: depth_scale is {s!r}, not a positive number of millimetres "
+                         f"per depth unit; restore the file from the dataset")
+    return k.reshape(3, 3), float(s)
 
 
 def _posed(cam: dict) -> bool:
@@ -124,20 +136,27 @@ def read(root: Path, frame: int | None = None) -> Scan:
             poses[i] = None if T is None else np.linalg.inv(T)
         except InputError as e:
             poses[i] = str(e)
+    # an image whose camera entry is malformed costs only itself
+    cam_K, scale, bad = {}, {}, {}
+    for i in sorted(ids):
+        try:
+            cam_K[i], scale[i] = _camera(cams[i], path, i)
+        except InputError as e:
+            bad[i] = str(e)
+    if frame is not None and bad:
+        raise InputError(bad[frame])
+    if bad:
+        warn(f"{root}: skipped {len(bad)} of {len(ids)} image(s) whose camera is malformed (first: {bad[min(bad)]})",
+             BadFrameWarning)
+        if len(bad) == len(ids):
+            raise InputError(f"{path}: no image with a usable camera (first: {bad[min(bad)]})")
+    ids = ids - set(bad)
     kept, skipped = match_frames(root, {i: p for i, p in colors.items() if i in ids},
                                  {i: p for i, p in depths.items() if i in ids}, poses, {i: path for i in ids},
                                  regular_numbering=False)
-    K, scales = [], set()
-    for i in kept:
-        k = _numbers(cams[i], "cam_K", 9, path, i)
-        if k is None:
-            raise InputError(f"{path}: image {i} has no cam_K; restore the file from the dataset")
-        K.append(k.reshape(3, 3))
-        s = cams[i].get("depth_scale", 1.0)
-        if not isinstance(s, (int, float)) or isinstance(s, bool) or not math.isfinite(s) or s <= 0:
-            raise InputError(f"{path}: image {i}: depth_scale is {s!r}, not a positive number of millimetres "
-                             f"per depth unit; restore the file from the dataset")
-        scales.add(float(s))
+    skipped["bad_camera"] = len(bad)
+    K = [cam_K[i] for i in kept]
+    scales = {scale[i] for i in kept}
     if len(scales) > 1:
         raise InputError(f"{path}: the posed images' depth_scale differs ({', '.join(map(str, sorted(scales)))} "
                          f"mm per unit); scansynth reads one scale per scan: re-save the depth maps at one scale")

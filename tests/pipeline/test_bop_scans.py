@@ -157,6 +157,19 @@ def test_a_rotation_that_is_no_rotation_costs_its_image(bop_scan, tmp_path):
     np.testing.assert_array_equal(s.frame_ids, [0, 1, 3, 4, 5])
 
 
+def test_a_malformed_camera_costs_its_image(bop_scan, tmp_path):
+    scan = _copy(bop_scan, tmp_path / "000002")
+    cams = _cams(scan)
+    cams["4"]["cam_K"] = [500, 0, 80]
+    cams["1"]["depth_scale"] = -1
+    (scan / "scene_camera.json").write_text(json.dumps(cams))
+    with pytest.warns(UserWarning, match=r"skipped 2 of 6 image\(s\) whose camera is malformed \(first: .*image 1: "
+                                         r"depth_scale is -1"):
+        s = read_scan(scan)
+    np.testing.assert_array_equal(s.frame_ids, [0, 2, 3, 5])
+    assert s.meta["skipped"]["bad_camera"] == 2
+
+
 def test_unposed_bop_images_become_datasets_of_their_own(tmp_path):
     """A BOP scene of two images without world poses, end to end: each image is a scene of one frame;
     objects dropped on what its depth shows are composited onto that image and exported."""
