@@ -165,6 +165,7 @@ def _view_map(run_dir: Path, scan, room, R_w2g: np.ndarray | None = None):
     """Votes of the scene's kept frames for spawn cells in the room frame ``R_w2g`` of
     :func:`pipeline.physics.drop.room_frame` (computed when None; None when nothing was selected or
     seen)."""
+    from pipeline.physics.collide import grid_distance
     from pipeline.physics.drop import room_frame
     from pipeline.view_spawn import view_map
 
@@ -173,24 +174,13 @@ def _view_map(run_dir: Path, scan, room, R_w2g: np.ndarray | None = None):
     except UserError:
         return None
     vm = view_map(scan, frames, room_frame(room, scan.up_w) if R_w2g is None else R_w2g,
-                  surface_distance=lambda p: grid_distance(room, p))
+                  surface_distance=lambda p: grid_distance(room.origin, room.spacing, room.udf, p,
+                                                           gradient=False)[0])
     if not len(vm.score):
         log.warning("%s: no kept frame sees an upward-facing surface; drops spawn over the whole room",
                     scan.name)
         return None
     return vm
-
-
-def grid_distance(room, points: np.ndarray) -> np.ndarray:
-    """Distance (m) of world ``points`` (P, 3) to the room surface at their nearest node of the room's
-    distance grid; ``inf`` outside the grid."""
-    g = np.round((np.asarray(points, float) - room.origin) / room.spacing).astype(np.int64)
-    n = np.array(room.udf.shape)
-    inside = np.all((g >= 0) & (g < n), axis=1)
-    out = np.full(len(g), np.inf)
-    gi = g[inside]
-    out[inside] = room.udf[gi[:, 0], gi[:, 1], gi[:, 2]]
-    return out
 
 
 def finish(ctx: StageContext, results: dict[str, dict]) -> None:

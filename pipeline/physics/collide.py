@@ -57,7 +57,14 @@ def world_vertices(model: Model, R: np.ndarray, pos: np.ndarray) -> np.ndarray:
 
 def room_distance(model: Model, points: np.ndarray, *, gradient: bool = True
                   ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Trilinear unsigned distance to the room surface and its gradient.
+    """Trilinear unsigned distance to the model's room surface and its gradient (:func:`grid_distance`)."""
+    return grid_distance(model.room_origin, model.room_spacing, model.room_udf, points, gradient=gradient)
+
+
+def grid_distance(origin: np.ndarray, spacing: float, udf: np.ndarray, points: np.ndarray, *,
+                  gradient: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """Trilinear unsigned distance to a surface from its distance grid (a :class:`Room`'s ``origin``,
+    ``spacing`` and C-contiguous ``udf``), and its gradient.
 
     Parameters
     ----------
@@ -71,13 +78,13 @@ def room_distance(model: Model, points: np.ndarray, *, gradient: bool = True
     """
     shp = points.shape[:-1]
     p = points.reshape(-1, 3)
-    g = (p - model.room_origin) / model.room_spacing
-    n = np.array(model.room_udf.shape)
+    g = (p - origin) / spacing
+    n = np.array(udf.shape)
     inside = np.all((g >= 0) & (g <= n - 1), axis=1)
     gi = np.clip(np.floor(g), 0, n - 2).astype(np.int64)
     f = np.clip(g - gi, 0.0, 1.0)
-    u = model.room_udf
-    sx, sy, sz = int(n[1] * n[2]), int(n[2]), 1    # C order (build_model makes the grid contiguous)
+    u = udf
+    sx, sy, sz = int(n[1] * n[2]), int(n[2]), 1    # C order (room_from_arrays makes the grid contiguous)
     lin = gi @ np.array([sx, sy, sz], np.int64)
     corner = np.array([dx * sx + dy * sy + dz * sz for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)])
     c = np.take(u.reshape(-1), lin[:, None] + corner[None, :]).astype(float).reshape(len(p), 2, 2, 2)
