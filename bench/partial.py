@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.common import SHARED_DATA, BenchResult
+from bench.physics import supports
 
 log = logging.getLogger(__name__)
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,35 +61,6 @@ def prepared_run(kind: str, cache: Path) -> Path:
     if r.returncode != 0:
         raise RuntimeError(f"{kind}: prep failed:\n{r.stderr[-2000:]}")
     return run
-
-
-def supports(room, up: np.ndarray, bodies: list, R_m2w: np.ndarray, t_m2w: np.ndarray) -> list:
-    """What holds up each body at rest: ("scan", gap m) | ("object", None) | ("nothing", height above
-    the scan m). Contacts as :func:`bench.physics.surface_gaps` (a 0.1 mm shell, the object's own hull
-    vertices): a scan contact within 1 cm whose normal is within 72 deg of up holds a body; so does a
-    contact with another body below it."""
-    import dataclasses as dc
-
-    from pipeline.physics.collide import collide
-    from pipeline.physics.io import build_model, make_state
-
-    m = dc.replace(build_model(bodies, room=room, room_thickness=1e-4), exact_room_contacts=True)
-    con = collide(m, make_state(m, R_m2w, t_m2w).replace(asleep=np.zeros(len(bodies), bool)))
-    out = []
-    for k, b in enumerate(bodies):
-        V = np.asarray(b.vertices, float) @ R_m2w[k].T + t_m2w[k]
-        centre = np.broadcast_to(R_m2w[k] @ np.asarray(b.com, float) + t_m2w[k], V.shape)
-        dist, _ = room.mesh.closest(V, centre)
-        lift = con.normal @ up                  # normals point from body b to body a
-        near = con.dist < 0.01
-        if np.any(near & (con.body_a == k) & (con.body_b == -1) & (lift > 0.3)):
-            out.append(("scan", float(dist.min())))
-        elif np.any(near & (((con.body_a == k) & (con.body_b >= 0) & (lift > 0.3))
-                            | ((con.body_b == k) & (lift < -0.3)))):
-            out.append(("object", None))
-        else:
-            out.append(("nothing", float(dist.min())))
-    return out
 
 
 def drops(run: Path, n_drops: int, *, raise_slab: bool) -> dict:
@@ -123,7 +95,7 @@ def drops(run: Path, n_drops: int, *, raise_slab: bool) -> dict:
             if pl.verdict != "accepted":
                 continue
             bodies = [S.body_of(proxies[int(i)], cfg.simulate.friction) for i in pl.obj_ids]
-            for what, v in supports(room, up, bodies, pl.R_m2w, pl.t_m2w):
+            for what, v in supports(room, up, bodies, pl.R_m2w, pl.t_m2w):   # bench.physics
                 if what == "object":
                     held["object"] += 1
                 else:
@@ -171,7 +143,7 @@ def main() -> int:
         "Captures from bench/captures.py (redkitchen frame 0; the cropped table keeps faces 0.55-1.0 m above "
         "the frame's floor). Drops: pipeline.simulate.simulate with the spawn view map of the kept frame, "
         "3 LM-O objects per drop (meshprep solids), seeds item_rng(0, 'bench-partial', dropNNNN). Objects of "
-        "accepted drops are classed by what holds them up (bench.partial.supports); gap = smallest signed "
+        "accepted drops are classed by what holds them up (bench.physics.supports); gap = smallest signed "
         "distance of the object's hull vertices to the scan mesh. CPU seconds of this process, BLAS on one "
         "thread. Baseline (same run): the view map without the on-the-mesh filter and its surface heights "
         "set to -inf, so the slab stays at simulate's room-height fractions (the code before this change).")

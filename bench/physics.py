@@ -173,16 +173,15 @@ def _pen_stats(p: np.ndarray) -> dict:
             "median_m": float(np.median(p)), "share_within_2mm": float(np.mean(p <= 2e-3))}
 
 
-def surface_gaps(room, up: np.ndarray, bodies: list, R_m2w: np.ndarray, t_m2w: np.ndarray
-                 ) -> tuple[list[float], int]:
-    """Gap (m, < 0: penetration) between each object resting on the scan and the scan mesh itself.
+def supports(room, up: np.ndarray, bodies: list, R_m2w: np.ndarray, t_m2w: np.ndarray) -> list:
+    """What holds up each body at rest: ("scan", gap m) | ("object", None) | ("nothing", distance to the
+    scan m).
 
-    A body rests on the scan when one of its final contacts (room contacts at the object's own hull
-    vertices, a 0.1 mm shell) is with the static world and holds it up (normal within 72 deg of up)
-    within 1 cm; bodies held up only by other bodies are left out (their gap is to another object).
-    The gap is the smallest signed distance of the object's hull vertices to the mesh (negative behind
-    a sheet, seen from the object's centre: :meth:`RoomMesh.closest`). Returns the gaps and the count
-    of bodies left out.
+    A scan contact holds a body when, with room contacts at the object's own hull vertices and a 0.1 mm
+    shell, it is within 1 cm and its normal is within 72 deg of up; such a contact with another body
+    below it holds it too. The gap (distance) is the smallest signed distance of the object's hull
+    vertices to the scan mesh itself (negative behind a sheet, seen from the object's centre:
+    :meth:`RoomMesh.closest`), not to a shell.
     """
     import dataclasses as dc
 
@@ -190,19 +189,33 @@ def surface_gaps(room, up: np.ndarray, bodies: list, R_m2w: np.ndarray, t_m2w: n
     from pipeline.physics.io import build_model, make_state
 
     m = dc.replace(build_model(bodies, room=room, room_thickness=1e-4), exact_room_contacts=True)
-    s = make_state(m, R_m2w, t_m2w)
-    con = collide(m, s.replace(asleep=np.zeros(len(bodies), bool)))
-    gaps, others = [], 0
+    con = collide(m, make_state(m, R_m2w, t_m2w).replace(asleep=np.zeros(len(bodies), bool)))
+    lift = con.normal @ up                  # normals point from body b to body a
+    near = con.dist < 0.01
+    out = []
     for k, b in enumerate(bodies):
-        held = np.any((con.body_a == k) & (con.body_b == -1) & (con.normal @ up > 0.3) & (con.dist < 0.01))
-        if not held:
-            others += 1
+        if np.any(near & (con.body_a == k) & (con.body_b == -1) & (lift > 0.3)):
+            what = "scan"
+        elif np.any(near & (((con.body_a == k) & (con.body_b >= 0) & (lift > 0.3))
+                            | ((con.body_b == k) & (lift < -0.3)))):
+            out.append(("object", None))
             continue
+        else:
+            what = "nothing"
         V = np.asarray(b.vertices, float) @ R_m2w[k].T + t_m2w[k]
         centre = np.broadcast_to(R_m2w[k] @ np.asarray(b.com, float) + t_m2w[k], V.shape)
         dist, _ = room.mesh.closest(V, centre)
-        gaps.append(float(dist.min()))
-    return gaps, others
+        out.append((what, float(dist.min())))
+    return out
+
+
+def surface_gaps(room, up: np.ndarray, bodies: list, R_m2w: np.ndarray, t_m2w: np.ndarray
+                 ) -> tuple[list[float], int]:
+    """Gap (m, < 0: penetration) between each object resting on the scan and the scan mesh itself
+    (:func:`supports`); bodies not held up by the scan are left out and counted."""
+    held = supports(room, up, bodies, R_m2w, t_m2w)
+    gaps = [v for what, v in held if what == "scan"]
+    return gaps, len(held) - len(gaps)
 
 
 def room_drops(room, up: np.ndarray, bodies: list, n_drops: int, n_obj: int, dt: float,
