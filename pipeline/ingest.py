@@ -60,12 +60,18 @@ def scene_names(paths: tuple[str, ...] | list[str]) -> list[str]:
     ``_`` and ``.`` replaced by ``_``; repeated names get ``-2``, ``-3``...; reserved names (``objects``)
     get a ``-scan`` suffix.
     """
-    out: list[str] = []
+    bases = []
     for p in paths:
         base = p[len(BUILTIN_PREFIX):] if p.startswith(BUILTIN_PREFIX) else Path(p.rstrip("/\\")).name
         base = re.sub(r"[^A-Za-z0-9_.-]", "_", base).strip(".") or "scan"
-        if base in RESERVED_SCENES:
-            base += "-scan"
+        bases.append(base + "-scan" if base in RESERVED_SCENES else base)
+    return unique_names(bases)
+
+
+def unique_names(bases: list[str]) -> list[str]:
+    """``bases`` with repeated names made unique by ``-2``, ``-3``... (in order)."""
+    out: list[str] = []
+    for base in bases:
         name, k = base, 2
         while name in out:
             name, k = f"{base}-{k}", k + 1
@@ -218,15 +224,11 @@ def plan(ctx: StageContext) -> list[Item]:
     (scene ``<name>-NNNNNN``, :func:`pipeline.scanformats.detect.scan_units`)."""
     from pipeline.scanformats.detect import scan_units
 
-    items, used = [], set()
-    for n, p in zip(scene_names(ctx.cfg.scan.paths), ctx.cfg.scan.paths):
-        units = [None] if p.startswith(BUILTIN_PREFIX) else scan_units(p, ctx.cfg.scan.format)
-        for u in units:
-            key = n if u is None else f"{n}-{u:06d}"
-            while key in used:
-                key += "_"
-            used.add(key)
-            items.append(Item(key=key, data={"path": p} if u is None else {"path": p, "frame": int(u)}))
+    units = [(n, p, u) for n, p in zip(scene_names(ctx.cfg.scan.paths), ctx.cfg.scan.paths)
+             for u in ([None] if p.startswith(BUILTIN_PREFIX) else scan_units(p, ctx.cfg.scan.format))]
+    keys = unique_names([n if u is None else f"{n}-{u:06d}" for n, _, u in units])
+    items = [Item(key=k, data={"path": p} if u is None else {"path": p, "frame": int(u)})
+             for k, (_, p, u) in zip(keys, units)]
     items.append(Item(key=OBJECTS_KEY, data={"paths": list(ctx.cfg.objects.paths)}))
     return items
 
