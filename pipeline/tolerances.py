@@ -47,6 +47,10 @@ TRACE_FURNACE_REL_TOL = 0.005
 # renderers at 2048 spp included, ~1.5 % measured) and relative mean bias (systematic part alone).
 TRACE_MITSUBA_REL_RMSE_MAX = 0.02
 TRACE_MITSUBA_REL_BIAS_MAX = 0.005
+# The default object material (metallic 0, roughness 0.5, specular 1) against Mitsuba's `principled`: the
+# issue's figure. Glossy highlights make both renderers noisier than the Lambert scenes: 1.4-1.6 % measured
+# at 4096 spp each (0.8 % at 8192 / 16384 spp, bias under 0.1 %); the bias bound is the one above.
+TRACE_MITSUBA_PRINCIPLED_REL_RMSE_MAX = 0.03
 # Ray origins are moved this far (metres) off the surface along the geometric normal: ~100x the float32
 # spacing of coordinates within 10 m of the origin, far below any feature of a 2 cm-voxel room scan.
 TRACE_RAY_EPS_M = 1e-4

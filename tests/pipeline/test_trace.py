@@ -158,8 +158,11 @@ def test_bsdf_mixture_sampling_passes_chi_square_against_its_pdf(metallic, rough
 @pytest.mark.parametrize("metallic", [0.0, 0.5, 1.0])
 @pytest.mark.parametrize("roughness", [0.05, 0.3, 0.7, 1.0])
 def test_bsdf_conserves_energy_and_sampling_is_unbiased(metallic, roughness):
-    """Directional albedo <= 1 for a white base colour at every angle; importance-sampled estimate
-    equals the uniform-hemisphere estimate of the same integral."""
+    """Directional albedo for a white base colour at every angle: <= 1 for the metal; for the dielectric,
+    Mitsuba's principled (Disney) model reflects more than it receives (up to 1.51 at roughness 1, grazing:
+    its diffuse ignores the specular layer's share and adds retro-reflection), so only that bound holds
+    (test_trace_mitsuba checks the values against Mitsuba). The importance-sampled estimate equals the
+    uniform-hemisphere estimate of the same integral."""
     rng = np.random.default_rng(3)
     n = 40_000
     for cos_o in (1.0, 0.7, 0.3, 0.05):
@@ -168,7 +171,7 @@ def test_bsdf_conserves_energy_and_sampling_is_unbiased(metallic, roughness):
         wi, fc, pdf = bsdf.sample(wo, m, rng.random(n), rng.random(n), rng.random(n))
         est = np.where(pdf > 0, fc[:, 0] / np.where(pdf > 0, pdf, 1), 0.0)
         mean, se = est.mean(), est.std() / np.sqrt(n)
-        assert mean <= 1.0 + 4 * se + 1e-3, (cos_o, mean)
+        assert mean <= (1.0 if metallic == 1.0 else 1.52) + 4 * se + 1e-3, (cos_o, mean)
         assert (fc >= 0).all()
         if roughness >= 0.3:  # a uniform-hemisphere estimate is only precise for broad lobes
             z = rng.random(n)
