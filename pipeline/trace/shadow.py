@@ -60,7 +60,9 @@ def instance_spheres(scene: TraceScene) -> tuple[np.ndarray, np.ndarray]:
 
 def _room_radiance(scene: TraceScene, room_isect: Intersector, org: np.ndarray,
                    dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Radiance (R, 3) float64 that rays receive from the room (or the environment) and the hit distance."""
+    """Radiance (R, 3) float64 that rays receive from the room (or the environment) and the hit distance.
+
+    The area lights are left out (0): :func:`_direct_light` samples them explicitly."""
     hr = room_isect.intersect(org, dirs)
     L = np.array(scene.escape_radiance(dirs), np.float64)
     hit = hr.hit
@@ -69,7 +71,62 @@ def _room_radiance(scene: TraceScene, room_isect: Intersector, org: np.ndarray,
         fr = scene.faces[hr.prim[hit]]
         a, b = hr.u[hit][:, None], hr.v[hit][:, None]
         L[hit] = (1 - a - b) * E[fr[:, 0]] + a * E[fr[:, 1]] + b * E[fr[:, 2]]
+        if scene.area_lights.count:
+            hi = np.flatnonzero(hit)
+            L[hi[scene.area_lights.prob_of_tri[hr.prim[hi]] > 0]] = 0.0
     return L, hr.t
+
+
+def _direct_light(scene: TraceScene, room_isect: Intersector, obj_isect: Intersector, p: np.ndarray,
+                  ng: np.ndarray, per: np.ndarray, rng: np.random.Generator, eps: float
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Light (luminance, as radiance from a white surface) that the area lights send to room points
+    ``p`` without objects, and the part of it the objects block: ``(E0_direct, blocked)``, each (n,).
+
+    ``per[i]`` points on the lights per room point, stratified over the light selection; a shadow ray
+    first against the room (does the light reach the point at all?), then against the objects. This
+    gives the objects' shadow its direction and its edge (hard under a small light, soft under a large
+    one) with the noise of a few explicit samples, not of hemisphere rays that rarely meet a small lamp.
+    """
+    from pipeline.trace.lights import sample_area_lights
+
+    n = p.shape[0]
+    al = scene.area_lights
+    pr = np.repeat(np.arange(n), per)
+    m = per[pr]
+    rank = np.arange(pr.size) - np.repeat(np.cumsum(per) - per, per)
+    u0 = (rank + rng.random(pr.size)) / m                     # stratified light choice
+    tri, b1, b2, pA = sample_area_lights(al, scene.vertices, scene.faces, u0, rng.random(pr.size),
+                                         rng.random(pr.size))
+    f = scene.faces[tri]
+    Vx = scene.vertices.astype(np.float64)
+    q0, q1, q2 = Vx[f[:, 0]], Vx[f[:, 1]], Vx[f[:, 2]]
+    b0 = 1 - b1 - b2
+    lp = b0[:, None] * q0 + b1[:, None] * q1 + b2[:, None] * q2
+    E = scene.emission
+    Le = (b0[:, None] * E[f[:, 0]] + b1[:, None] * E[f[:, 1]] + b2[:, None] * E[f[:, 2]]) @ LUMINANCE_F64
+    dv = lp - p[pr]
+    dist = np.linalg.norm(dv, axis=1)
+    wl = dv / np.maximum(dist, 1e-12)[:, None]
+    cos_p = np.einsum("ij,ij->i", wl, ng[pr])
+    cos_l = np.abs(np.einsum("ij,ij->i", wl, scene.tri_normal[tri]))
+    ok = np.flatnonzero((cos_p > 0) & (cos_l > 1e-6) & (dist > 4 * eps))
+    e0 = np.zeros(n)
+    blocked = np.zeros(n)
+    if ok.size == 0:
+        return e0, blocked
+    wl32 = wl[ok].astype(np.float32)
+    org = offset_origins(p[pr[ok]], ng[pr[ok]], wl32, eps)
+    tmax = (dist[ok] - 2 * eps).astype(np.float32)
+    free = ~room_isect.occluded(org, wl32, tmax)
+    ok, org, wl32, tmax = ok[free], org[free], wl32[free], tmax[free]
+    # E = integral L cos / pi over solid angle (as radiance from a white surface), pdf_sa = pA d^2 / cos_l
+    c = Le[ok] * cos_p[ok] * cos_l[ok] / (np.pi * pA[ok] * dist[ok] ** 2) / m[ok]
+    e0 = np.bincount(pr[ok], weights=c, minlength=n)
+    if ok.size:
+        hit_obj = obj_isect.occluded(org, wl32, tmax)
+        blocked = np.bincount(pr[ok[hit_obj]], weights=c[hit_obj], minlength=n)
+    return e0, blocked
 
 
 def split_intersectors(scene: TraceScene) -> tuple[Intersector, Intersector]:
@@ -138,7 +195,13 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
     dw = to_world(dl, ng[pr].astype(np.float64)).astype(np.float32)
     L0 = _room_radiance(scene, room_isect, offset_origins(p[pr], ng[pr], dw, eps), dw)[0] @ LUMINANCE_F64
     E0 = np.bincount(pr, weights=L0, minlength=n) / per
-    E1 = E0.copy()
+    if scene.area_lights.count:   # the lights sampled explicitly (left out of the rays above)
+        Ed, blocked = _direct_light(scene, room_isect, obj_isect, p.astype(np.float64), ng.astype(np.float64),
+                                    per, rng, eps)
+        E0 = E0 + Ed
+        E1 = E0 - blocked
+    else:
+        E1 = E0.copy()
     # what the objects change: rays sampled uniformly inside the cone of each nearby bounding sphere
     # (low noise for a small solid angle); a ray that hits an object before the room swaps the room's
     # light behind it for the object's (albedo x mean light here); directions inside several cones
