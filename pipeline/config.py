@@ -200,8 +200,10 @@ class TraceConfig:
     """Path-traced ambient occlusion and physically based shading of the objects."""
 
     spp: int = option(8, "samples per pixel (upper bound when adaptive)", min=1)
-    lighting: str = option("scan", "light source: the scan's own radiance or the published four lights",
-                           choices=("scan", "published"))
+    lighting: str = option("scan", "light source: fit = emitters recovered from the photos by inverse rendering "
+                           "(pipeline/trace/lightfit.py), scan = the room mesh's own radiance with clipped-photo "
+                           "lights, published = the published four lights",
+                           choices=("fit", "scan", "published"))
     spp_min: int = option(4, "samples per pixel before the adaptive stop may end a pixel", min=1)
     noise_target: float = option(0.03, "adaptive stop: standard error of a pixel's mean below this share of "
                                  "its mean luminance; 0 = always take spp samples", min=0.0)
@@ -240,6 +242,17 @@ class TraceConfig:
     room_albedo: float = option(0.5, "photo-based lighting: typical room albedo (grey-world prior) for the energy "
                                 "balance that sets the radiance of directions no photo saw; 0 = env_radiance "
                                 "there", min=0.0, max=1.0)
+    fit_points: int = option(2000, "fit lighting: room points the photos saw that the light fit explains at most",
+                             min=50)
+    fit_cell: float = option(0.4, "fit lighting: cell size of the box that closes the room's holes (each cell "
+                             "an unknown emitter), metres", min=0.05)
+    fit_sparsity: float = option(0.02, "fit lighting: weight of the few-bright-emitters prior (L1 on emitted power, "
+                                 "relative to the photo residual)", min=0.0)
+    fit_albedo_prior: float = option(0.0, "fit lighting: weight of the prior pulling each channel's mean room albedo "
+                                     "towards 0.45 (0 = the photos alone decide)", min=0.0)
+    lights_file: str = option("", "fit lighting: JSON file of emitters you know, [{\"corners\": 4 x [x, y, z] world "
+                              "metres, \"radiance\": [r, g, b] linear, 1 = sensor white}]; they light the room as "
+                              "given and the fit explains only the rest")
     frames_per_item: int = option(8, "frames of one drop traced per work item: each item builds the drop's "
                                   "scene once; fewer frames per item = finer load balance over workers", min=1)
 

@@ -50,6 +50,7 @@ RASTER_TPATH = "raster/" + FRAME_KEY_TPATH           # + .json (every frame) / .
 SCENE_DEPTH_TPATH = "raster/{scene}/scene_depth/f{frame:06d}.npz"
 REAL_DEPTH_TPATH = "raster/{scene}/real_depth/f{frame:06d}.npz"
 TRACE_TPATH = "trace/" + FRAME_KEY_TPATH + ".npz"
+ROOM_LIGHTS_TPATH = "trace/{scene}/lights.npz"        # the fitted room lights (trace.lighting = "fit")
 COMPOSITE_TPATH = "composite/" + FRAME_KEY_TPATH + ".png"
 COMPOSITE_DEPTH_TPATH = "composite/" + FRAME_KEY_TPATH + "_depth.npz"
 DATASET_DIR = "export/dataset"

@@ -44,7 +44,7 @@ class TraceScene:
     uv: np.ndarray            # (V, 2) float32 texture coordinates (OpenGL, v up); 0 where untextured
     metallic: np.ndarray      # (N + 1,) float32 per instance (index 0 = room)
     roughness: np.ndarray     # (N + 1,) float32 perceptual roughness per instance
-    specular: np.ndarray      # (N + 1,) float32 dielectric specular scale per instance
+    specular: np.ndarray      # (N + 1,) float32 per instance: 1 = the principled dielectric, 0 = Lambert (bsdf.py)
     textures: Textures
     area_lights: AreaLights   # emitters sampled explicitly (NEE + MIS)
     point_lights: PointLights  # delta lights (published mode); may be empty
@@ -166,7 +166,7 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
                 light_threshold: int = 250, light_gain: float = 4.0, env_radiance: np.ndarray | None = None,
                 published_power: float = 1.0, up: np.ndarray | None = None,
                 room_linear_radiance: np.ndarray | None = None, light_vertices: np.ndarray | None = None,
-                env_map: np.ndarray | None = None) -> TraceScene:
+                env_map: np.ndarray | None = None, room_lights=None) -> TraceScene:
     """Assemble a :class:`TraceScene` and its Embree intersector.
 
     Parameters
@@ -174,7 +174,8 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
     room_vertices, room_faces : (V, 3) float metres, (T, 3) int; may be empty
     room_colors : (V, 3) uint8 sRGB vertex colours of the room, or None (grey 0.5)
     objects : placed objects, instance ``k`` gets ``tri_inst = k + 1``
-    lighting : "scan" (room emits its colours) or "published" (four point lights, room diffuse)
+    lighting : "scan" (room emits its colours), "fit" (room emits the radiance of ``room_lights``, the
+        recovered emitters sampled as lights) or "published" (four point lights, room diffuse)
     radiance_scale : multiplies the room's linear colours to give radiance
     light_threshold, light_gain : clipped-colour detection (0..255) and the radiance gain of the lights
         it finds; ``light_gain <= 0`` disables detection
@@ -188,10 +189,18 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
     env_map : (h, w, 3) float32 equirectangular radiance of escaping rays about ``up``
         (:func:`pipeline.trace.lights.env_lookup`); replaces ``env_radiance`` for the object tracer
         and the shadow pass (scan lighting only)
+    room_lights : :class:`~pipeline.trace.lightfit.RoomLights` (fit lighting: replaces the room mesh,
+        its colours and the light detection by the closed, fitted room)
     """
+    if lighting == "fit":
+        if room_lights is None:
+            raise ValueError("lighting 'fit' needs room_lights (pipeline.trace.lightfit.fit_room_lights)")
+        room_vertices, room_faces = room_lights.vertices, room_lights.faces
+        room_linear_radiance = room_lights.radiance
     rv = np.asarray(room_vertices, np.float64).reshape(-1, 3)
     rf = np.asarray(room_faces, np.int64).reshape(-1, 3)
     nrv, nrt = rv.shape[0], rf.shape[0]
+    emits = lighting in ("scan", "fit")
     if room_linear_radiance is not None:
         room_lin = np.asarray(room_linear_radiance, np.float32).reshape(-1, 3)
         bright = np.zeros(nrt, bool)
@@ -206,8 +215,8 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
     faces = [rf]
     norms = [vertex_normals(rv, rf) if nrt else np.zeros((nrv, 3), np.float32)]
     tri_inst = [np.zeros(nrt, np.int32)]
-    emis = [room_lin.copy() if lighting == "scan" else np.zeros((nrv, 3), np.float32)]
-    albedo = [np.zeros((nrv, 3), np.float32) if lighting == "scan" else np.clip(room_lin, 0, 1)]
+    emis = [room_lin.copy() if emits else np.zeros((nrv, 3), np.float32)]
+    albedo = [np.zeros((nrv, 3), np.float32) if emits else np.clip(room_lin, 0, 1)]
     uvs = [np.zeros((nrv, 2), np.float32)]
     metallic, roughness, specular = [0.0], [1.0], [0.0]
     tex_inst, tex_img = [], []
@@ -236,6 +245,8 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
         E[:nrv], boosted = boost_lights(E[:nrv], rf, bright, None if room_linear_radiance is not None else light_vertices,
                                         light_gain=light_gain, radiance_scale=radiance_scale)
     light_mask = np.zeros(len(F), bool)
+    if lighting == "fit":
+        light_mask[:nrt] = np.asarray(room_lights.light_tri, bool)
     if boosted.any():
         # every triangle touching a boosted vertex carries boosted emission: sample them all explicitly
         light_mask[:nrt] = boosted[rf].any(axis=1)
@@ -245,7 +256,7 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
     else:
         pts = PointLights(position=np.zeros((0, 3)), intensity=np.zeros((0, 3)))
     if env_radiance is None:
-        env = mean_radiance(rv, rf, room_lin) if lighting == "scan" else np.zeros(3, np.float32)
+        env = mean_radiance(rv, rf, room_lin) if emits else np.zeros(3, np.float32)
     else:
         env = np.asarray(env_radiance, np.float32).reshape(3)
     ext = V.max(axis=0) - V.min(axis=0) if len(V) else np.ones(3)

@@ -120,7 +120,8 @@ def trace_frame(ctx: StageContext, scene, rf: RasterFrame, labels: np.ndarray, *
 
 @functools.lru_cache(maxsize=2)
 def _room(run_dir: str, scene_name: str, cfg: TraceConfig, seed: int, stamps: tuple) -> tuple:
-    """``(scan, room vertices, faces, colours, light_vertices, env_map)`` of a scene, read-only arrays.
+    """``(scan, room vertices, faces, colours, light_vertices, env_map, room_lights)`` of a scene, read-only
+    arrays (``room_lights``: the fitted :class:`~pipeline.trace.lightfit.RoomLights`, fit lighting only).
 
     Kept per worker process for the next item of the same scene (the photo-based lighting alone costs
     ~0.7 CPU s per item on 7-Scenes); ``stamps`` (path, mtime, size of scan.json and the room mesh)
@@ -130,15 +131,99 @@ def _room(run_dir: str, scene_name: str, cfg: TraceConfig, seed: int, stamps: tu
 
     scan = load_scan(run_dir, scene_name)
     rv, rf, rc = read_room_ply(room_trace_mesh(run_dir, scan, cfg.room_mesh))
-    light_v = env_map = None
+    light_v = env_map = rl = None
     if cfg.lighting == "scan" and cfg.photo_frames > 0:   # per scan, not per item: same result in every chunk
         from pipeline.trace.photolights import scan_lighting
 
         light_v, env_map = scan_lighting(scan, rv, rf, rc, cfg, seed)
+    if cfg.lighting == "fit":
+        rl = room_lights(run_dir, scan, rv, rf, rc, cfg, seed, stamps)
     for a in (rv, rf, rc, light_v, env_map):
         if isinstance(a, np.ndarray):
             a.setflags(write=False)
-    return scan, rv, rf, rc, light_v, env_map
+    return scan, rv, rf, rc, light_v, env_map, rl
+
+
+def fit_settings(cfg: TraceConfig, width: int):
+    """:class:`~pipeline.trace.lightfit.FitSettings` of a :class:`TraceConfig` for photos ``width`` wide."""
+    from pipeline.trace.lightfit import FitSettings
+    from pipeline.trace.photolights import GRID_W
+
+    return FitSettings(points=cfg.fit_points, cell=cfg.fit_cell, stride=max(1, round(width / GRID_W)),
+                       sparsity=cfg.fit_sparsity, level_prior=cfg.fit_albedo_prior,
+                       threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale)
+
+
+def read_lights_file(file: str, radiance_scale: float = 1.0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The emitters of ``trace.lights_file``: ``[(corners (4, 3), radiance (3,) x radiance_scale)]``.
+
+    Raises InputError naming the file and the entry for anything that is not a list of
+    ``{"corners": 4 x 3 numbers, "radiance": 3 numbers >= 0}`` with a non-degenerate rectangle.
+    """
+    import json
+
+    p = Path(file)
+    try:
+        doc = json.loads(p.read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(f"{p}: cannot read trace.lights_file ({e}); give a JSON list of "
+                         f"{{\"corners\": [[x, y, z] x 4], \"radiance\": [r, g, b]}}") from None
+    if not isinstance(doc, list):
+        raise InputError(f"{p}: trace.lights_file must be a JSON list of emitters, got {type(doc).__name__}")
+    out = []
+    for k, e in enumerate(doc):
+        try:
+            c = np.asarray(e["corners"], np.float64)
+            r = np.asarray(e["radiance"], np.float64)
+        except (TypeError, KeyError, ValueError):
+            raise InputError(f"{p}: emitter {k} needs \"corners\" (4 x [x, y, z] metres) and \"radiance\" "
+                             f"([r, g, b])") from None
+        if c.shape != (4, 3) or r.shape != (3,) or not (np.all(np.isfinite(c)) and np.all(np.isfinite(r))):
+            raise InputError(f"{p}: emitter {k}: corners {c.shape} / radiance {r.shape} must be 4 x 3 and 3 "
+                             f"finite numbers")
+        if np.any(r < 0) or np.linalg.norm(np.cross(c[1] - c[0], c[3] - c[0])) < 1e-8:
+            raise InputError(f"{p}: emitter {k}: radiance {r.tolist()} must be >= 0 and the rectangle must "
+                             f"have an area")
+        out.append((c, r * radiance_scale))
+    return out
+
+
+def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, stamps: tuple):
+    """The scan's fitted lights (:func:`pipeline.trace.lightfit.fit_room_lights`), once per scan.
+
+    Kept in ``RUN/trace/<scene>/lights.npz`` with the key it was made for (the fit's settings, the seed,
+    and the stamps of scan.json and the room mesh): a worker or a later run with the same key reads it,
+    anything else fits again (the same bytes for the same key: writers racing write the same file).
+    """
+    import hashlib
+    import json
+
+    from pipeline.runfolder import ROOM_LIGHTS_TPATH
+    from pipeline.seeding import item_rng
+    from pipeline.trace.lightfit import RoomLights, fit_room_lights
+
+    st = fit_settings(cfg, scan.width)
+    lf = [str(x) for x in file_stamp(Path(cfg.lights_file))] if cfg.lights_file else []
+    key = hashlib.sha256(json.dumps([repr(st), cfg.photo_frames, seed, [list(s[1:]) for s in stamps], lf],
+                                    sort_keys=True).encode()).hexdigest()[:16]
+    out = path(run_dir, ROOM_LIGHTS_TPATH, scene=scan.name)
+    if out.is_file():
+        try:
+            rl = RoomLights.load(out)
+            if rl.summary.get("key") == key:
+                return rl
+        except (OSError, ValueError, KeyError):
+            pass
+    have = np.flatnonzero([bool(p) for p in scan.color_paths])
+    idx = (have[np.unique(np.linspace(0, have.size - 1, max(1, cfg.photo_frames)).round().astype(int))]
+           if have.size else have)
+    frames = [(read_color(scan, int(i)), scan.K[i], scan.T_c2w[i]) for i in idx]
+    known = read_lights_file(cfg.lights_file, cfg.radiance_scale) if cfg.lights_file else []
+    rl = fit_room_lights(rv, rf, rc, frames, up=scan.up_w, rng=item_rng(seed, "trace", "light-fit", scan.name),
+                         settings=st, name=scan.name, known_lights=known)
+    rl.summary["key"] = key
+    rl.save(out)
+    return rl
 
 
 def run_item(ctx: StageContext, item: Item) -> dict:
@@ -152,7 +237,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     stamps = tuple(file_stamp(p) for p in (path(ctx.run_dir, SCAN_TPATH, scene=scene_name),
                                        path(ctx.run_dir, FRAMES_TPATH, scene=scene_name),
                                        Path(room_trace_mesh(ctx.run_dir, scan, cfg.room_mesh))) if p.is_file())
-    scan, rv, rf, rc, light_v, env_map = _room(str(ctx.run_dir), scene_name, cfg, ctx.cfg.run.seed, stamps)
+    scan, rv, rf, rc, light_v, env_map, rl = _room(str(ctx.run_dir), scene_name, cfg, ctx.cfg.run.seed, stamps)
     library = {o.obj_id: o for o in load_objects(ctx.run_dir)}
     env = None if cfg.env_radiance < 0 else np.full(3, cfg.env_radiance, np.float32)
     scene = None
@@ -163,6 +248,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
         labels = load_npz(raster.stem.with_suffix(".npz"))["labels"]
         if scene is None:  # one placement per drop: every frame's instances have the same world poses
             scene = build_scene(rv, rf, rc, _instances(raster, library), lighting=cfg.lighting,
+                                room_lights=rl,
                                 radiance_scale=cfg.radiance_scale, light_threshold=cfg.light_threshold,
                                 light_gain=cfg.light_gain, env_radiance=env,
                                 published_power=cfg.published_power, up=scan.up_w,
@@ -170,7 +256,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
             if cfg.shadow_samples > 0:
                 split = split_intersectors(scene)
         exposure = 1.0
-        if cfg.lighting == "scan" and frame < scan.num_frames and scan.color_paths[frame]:
+        if cfg.lighting in ("scan", "fit") and frame < scan.num_frames and scan.color_paths[frame]:
             from pipeline.trace.photolights import frame_exposure
 
             exposure = frame_exposure(scene, scan.camera(frame), read_color(scan, frame),

@@ -1,0 +1,118 @@
+"""Light recovery by inverse rendering (pipeline/trace/lightfit.py): hard and bad input, and the closing box.
+
+Accuracy against an independent renderer is in tests/pipeline/test_lighting_suite.py (Mitsuba 3).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from pipeline.color import srgb_to_linear
+from pipeline.trace.lightfit import FitSettings, RoomLights, closing_box, fit_room_lights
+from tests.pipeline.shapes import box_room, look_at
+
+W, H = 64, 48
+K = np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def open_room():
+    """A 4 x 4 x 2.5 m box room without its ceiling (the part no photo saw), grey walls."""
+    v, f = box_room((-2, -2, 0), (2, 2, 2.5), n=6)
+    c = v[f].mean(axis=1)
+    keep = ~(c[:, 2] > 2.49)
+    f = f[keep]
+    colors = np.full((len(v), 3), 150, np.uint8)
+    return v, f, colors
+
+
+def frames(n: int, level: int | None = None, photo=None):
+    out = []
+    for k in range(n):
+        a = 2 * np.pi * k / max(n, 1)
+        T = look_at((1.2 * np.cos(a), 1.2 * np.sin(a), 1.3), (0.0, 0.0, 0.6))
+        img = (np.full((H, W, 3), level, np.uint8) if photo is None else photo)
+        out.append((img, K, T))
+    return out
+
+
+def check_finite(rl: RoomLights) -> None:
+    assert np.all(np.isfinite(rl.radiance)) and np.all(rl.radiance >= 0)
+    assert rl.light_tri.shape == (len(rl.faces),)
+
+
+def test_closing_box_faces_inward_and_encloses():
+    pts = np.random.default_rng(0).uniform(-1, 1, (100, 3)) * [2, 1.5, 1.2]
+    V, F, cen, nrm = closing_box(pts, UP, 0.5)
+    assert len(F) == 2 * len(cen) and len(V) == 4 * len(cen)
+    lo, hi = V.min(axis=0), V.max(axis=0)
+    assert np.all(lo < pts.min(axis=0)) and np.all(hi > pts.max(axis=0))
+    mid = 0.5 * (lo + hi)
+    assert np.all(np.einsum("ij,ij->i", mid - cen, nrm) > 0)        # normals look into the box
+    p = V[F]
+    tn = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    assert np.all(np.einsum("ij,ij->i", tn, np.repeat(nrm, 2, axis=0)) > 0)   # winding matches
+
+
+def test_unseen_ceiling_gets_the_light():
+    """Walls photographed brighter near the top than the bottom: the light must come from the unseen
+    ceiling (the box cells above), not from the floor."""
+    v, f, colors = open_room()
+    z = v[:, 2]
+    lin = 0.05 + 0.3 * (z / 2.5)                      # walls brighter towards the ceiling
+    colors = np.repeat(np.clip(np.round(255 * (lin ** (1 / 2.2))), 0, 255).astype(np.uint8)[:, None], 3, axis=1)
+    # photos showing the same radiance as the colours
+    fr = []
+    from pipeline.camera import Camera
+    from pipeline.trace.intersect import EmbreeIntersector
+
+    isect = EmbreeIntersector(v.astype(np.float32), f.astype(np.int32))
+    for img, Kf, T in frames(6, 0):
+        cam = Camera(K=Kf, T_c2w=T, width=W, height=H)
+        o, d = cam.rays(np.arange(W * H), np.full((W * H, 2), 0.5, np.float32))
+        h = isect.intersect(o, d)
+        zz = np.where(h.hit, (o + h.t[:, None] * d)[:, 2], 2.5)
+        val = np.clip(np.round(255 * ((0.05 + 0.3 * zz / 2.5) ** (1 / 2.2))), 0, 255).astype(np.uint8)
+        fr.append((np.repeat(val.reshape(H, W, 1), 3, axis=2), Kf, T))
+    rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(1),
+                         settings=FitSettings(points=600, stride=2, cell=0.5))
+    check_finite(rl)
+    assert rl.summary["fitted"], rl.summary["note"]
+    assert rl.summary["emitters"], "no emitter found"
+    top = [e for e in rl.summary["emitters"] if e["centre"][2] > 2.4]
+    assert sum(e["power_share"] for e in top) > 0.6, rl.summary["emitters"][:5]
+
+
+@pytest.mark.parametrize("case", ["dark", "clipped", "no photos", "one frame", "no colours"])
+def test_bad_input_says_what_it_assumed(case, caplog):
+    v, f, colors = open_room()
+    fr = {"dark": frames(4, 0), "clipped": frames(4, 255), "no photos": [], "one frame": frames(1, 120),
+          "no colours": frames(3, 120)}[case]
+    with caplog.at_level(logging.WARNING, logger="pipeline.trace.lightfit"):
+        rl = fit_room_lights(v, f, None if case == "no colours" else colors, fr, up=UP,
+                             rng=np.random.default_rng(0), settings=FitSettings(points=300, stride=2))
+    check_finite(rl)
+    if case in ("dark", "clipped", "no photos"):
+        assert not rl.summary["fitted"]
+        note = rl.summary["note"]
+        assert note and "\n" not in note
+        assert any(note in r.getMessage() for r in caplog.records)
+        assert not rl.light_tri.any()
+    else:
+        assert rl.summary["fitted"], rl.summary["note"]
+    if case == "no colours":   # the mesh's radiance comes from the photos themselves
+        seen = rl.radiance[:len(v)]
+        assert np.allclose(np.median(seen, axis=0), srgb_to_linear(np.array([120], np.uint8))[0], rtol=0.05)
+
+
+def test_save_load_round_trip(tmp_path):
+    v, f, colors = open_room()
+    rl = fit_room_lights(v, f, colors, frames(2, 120), up=UP, rng=np.random.default_rng(0),
+                         settings=FitSettings(points=200, stride=4))
+    rl.save(tmp_path / "lights.npz")
+    back = RoomLights.load(tmp_path / "lights.npz")
+    assert np.array_equal(back.radiance, rl.radiance) and np.array_equal(back.light_tri, rl.light_tri)
+    assert back.summary == rl.summary
