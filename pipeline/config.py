@@ -250,6 +250,9 @@ class TraceConfig:
                                  "relative to the photo residual)", min=0.0)
     fit_albedo_prior: float = option(0.0, "fit lighting: weight of the prior pulling each channel's mean room albedo "
                                      "towards 0.45 (0 = the photos alone decide)", min=0.0)
+    fit_level_tolerance: float = option(0.05, "fit lighting: each channel's room albedo is the highest level whose "
+                                        "photo residual is within this share of the best (the least light that "
+                                        "explains the photos)", min=0.0)
     lights_file: str = option("", "fit lighting: JSON file of emitters you know, [{\"corners\": 4 x [x, y, z] world "
                               "metres, \"radiance\": [r, g, b] linear, 1 = sensor white}]; they light the room as "
                               "given and the fit explains only the rest")

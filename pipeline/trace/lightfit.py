@@ -79,6 +79,7 @@ class FitSettings:
     min_share: float = 0.5      # share of clipped observations that makes a mesh vertex an emitter
     sparsity: float = 0.02      # L1 weight on emitted power (relative to the data term's scale)
     level_prior: float = 0.0    # weight of the log-normal prior on each channel's albedo level (per point)
+    level_tolerance: float = 0.05  # the highest albedo level whose objective is within this share of the best
     radiance_scale: float = 1.0  # the trace stage's: radiance = this x linear colour
 
 
@@ -520,7 +521,10 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         # each channel's albedo level where the photos are explained best (the light the known surfaces
         # send each other fixes it, channel by channel: the light's colour comes out of the fit)
         res_curve = np.array([fit_at(np.full(3, lv), iters=2)[2] for lv in ALBEDO_LEVELS])   # (levels, 3)
-        best_level = np.asarray(ALBEDO_LEVELS)[np.argmin(res_curve, axis=0)]
+        # the highest level (the least light) that explains the photos within level_tolerance of the best:
+        # below it the unknown cells can make up any amount of light, so the residual alone barely changes
+        ok = res_curve <= res_curve.min(axis=0) * (1 + st.level_tolerance)
+        best_level = np.asarray(ALBEDO_LEVELS)[[int(np.flatnonzero(ok[:, c]).max()) for c in range(3)]]
         e, rho, _ = fit_at(best_level, iters=5)
         best_level = [float(x) for x in best_level]
         res_curve = (res_curve @ LUMINANCE_F64).tolist()
