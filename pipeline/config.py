@@ -200,7 +200,7 @@ class TraceConfig:
     """Path-traced ambient occlusion and physically based shading of the objects."""
 
     spp: int = option(8, "samples per pixel (upper bound when adaptive)", min=1)
-    lighting: str = option("scan", "light source: fit = emitters recovered from the photos by inverse rendering "
+    lighting: str = option("fit", "light source: fit = emitters recovered from the photos by inverse rendering "
                            "(pipeline/trace/lightfit.py), scan = the room mesh's own radiance with clipped-photo "
                            "lights, published = the published four lights",
                            choices=("fit", "scan", "published"))
@@ -246,13 +246,16 @@ class TraceConfig:
                              min=50)
     fit_cell: float = option(0.4, "fit lighting: cell size of the box that closes the room's holes (each cell "
                              "an unknown emitter), metres", min=0.05)
-    fit_sparsity: float = option(0.02, "fit lighting: weight of the few-bright-emitters prior (L1 on emitted power, "
-                                 "relative to the photo residual)", min=0.0)
+    fit_sparsity: float = option(0.2, "fit lighting: weight of the few-bright-emitters prior (L1 on emission, each "
+                                 "cell weighed by the light it sends to the photographed points; tuned on half of "
+                                 "the Mitsuba light suite's rooms)", min=0.0)
     fit_albedo_prior: float = option(0.0, "fit lighting: weight of the prior pulling each channel's mean room albedo "
                                      "towards 0.45 (0 = the photos alone decide)", min=0.0)
     fit_level_tolerance: float = option(0.05, "fit lighting: each channel's room albedo is the highest level whose "
                                         "photo residual is within this share of the best (the least light that "
                                         "explains the photos)", min=0.0)
+    fit_emitters: int = option(24, "fit lighting: at most this many cells of the closing box emit in the fit's second "
+                               "stage (the rest reflect); 0 = one stage, emission anywhere", min=0)
     lights_file: str = option("", "fit lighting: JSON file of emitters you know, [{\"corners\": 4 x [x, y, z] world "
                               "metres, \"radiance\": [r, g, b] linear, 1 = sensor white}]; they light the room as "
                               "given and the fit explains only the rest")

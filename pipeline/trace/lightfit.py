@@ -77,9 +77,11 @@ class FitSettings:
     stride: int = 8             # photo pixels between grid rays
     threshold: int = 250        # 8-bit level at which a channel counts as clipped
     min_share: float = 0.5      # share of clipped observations that makes a mesh vertex an emitter
-    sparsity: float = 0.02      # L1 weight on emitted power (relative to the data term's scale)
+    sparsity: float = 0.2       # L1 weight on emission (columns normalised; relative to the data term's scale)
     level_prior: float = 0.0    # weight of the log-normal prior on each channel's albedo level (per point)
     level_tolerance: float = 0.05  # the highest albedo level whose objective is within this share of the best
+    support_share: float = 0.9  # stage 2: the cells carrying this share of stage 1's power emit, the rest reflect
+    max_emitters: int = 24      # stage 2: at most this many unknown cells emit (0 = no second stage)
     radiance_scale: float = 1.0  # the trace stage's: radiance = this x linear colour
 
 
@@ -193,14 +195,15 @@ def _nnls(Q: np.ndarray, g: np.ndarray, lam: np.ndarray, iters: int = 400) -> np
     return x
 
 
-def _solve_emission(rho_pt: np.ndarray, Ek: np.ndarray, A: np.ndarray, L: np.ndarray, w: np.ndarray,
+def _solve_emission(rho_pt: np.ndarray, Ek: np.ndarray, A_ch, L: np.ndarray, w: np.ndarray,
                     lb: np.ndarray, lam_k: np.ndarray, sparsity: float) -> tuple[np.ndarray, float]:
     """Emission (K, 3) >= lb minimising the weighted residual of ``L = rho/pi (Ek + A e)`` plus an L1 prior
     on emitted power; returns it and the prior's value per channel (3,)."""
-    K = A.shape[1]
+    K = A_ch[0].shape[1]
     e = np.zeros((K, 3))
     cost = np.zeros(3)
     for ch in range(3):
+        A = A_ch[ch]
         s = w * rho_pt[:, ch] / np.pi                   # row scale
         B = A * s[:, None]
         y = w * L[:, ch] - s * (Ek[:, ch] + A @ lb[:, ch])
@@ -472,6 +475,40 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     A = np.ascontiguousarray(A[:, :K])
     active = np.flatnonzero(A.max(axis=0) > 0)
 
+    # The unseen cells reflect as well as emit: a cell's radiance is e + rho_u / pi (Eu_known + G L_u),
+    # with G (K x K) the irradiance one cell receives per unit radiance of another and Eu_known what it
+    # receives from the known room (hemisphere rays from its centre). So the fill light of unseen walls and
+    # ceiling follows from the room's light at the albedo level being tried, and only emission pays the
+    # sparsity prior: L_u = (I - rho_u / pi G)^-1 (e + rho_u / pi Eu_known).
+    G = np.zeros((K, K))
+    Eu = np.zeros((K, 3))
+    nbu = box_unknown.size
+    if nbu:
+        Mu = max(16, M // 2)
+        cu = np.repeat(bcen[box_unknown], Mu, axis=0)
+        nu = np.repeat(bnrm[box_unknown], Mu, axis=0)
+        ku = np.repeat(np.arange(nbu), Mu)
+        uu = rng.random((2, cu.size // 3))
+        dlu, _ = cosine_hemisphere(uu[0], uu[1])
+        dwu = to_world(dlu, nu).astype(np.float32)
+        hu = isect.intersect(offset_origins(cu.astype(np.float32), nu.astype(np.float32), dwu, eps), dwu)
+        hit = np.flatnonzero(hu.hit)
+        tri = hu.prim[hit]
+        j = unknown_tri[tri]
+        un = j >= 0
+        np.add.at(G, (ku[hit[un]], j[un]), np.pi / Mu)
+        kn = hit[~un & (tri < nbt)]
+        fr = AF[hu.prim[kn]]
+        a, b = hu.u[kn][:, None], hu.v[kn][:, None]
+        Lk = (1 - a - b) * vrad[fr[:, 0]] + a * vrad[fr[:, 1]] + b * vrad[fr[:, 2]]
+        np.add.at(Eu, ku[kn], np.pi / Mu * Lk)
+    reflect = np.zeros(K)
+    reflect[:nbu] = 1.0                      # clipped mesh regions are lamps: they do not reflect here
+
+    def transport(level_c: float) -> np.ndarray:
+        """(I - rho_u / pi G)^-1 for an unknown cell albedo of ``level_c``."""
+        return np.linalg.inv(np.eye(K) - (level_c / np.pi) * reflect[:, None] * G)
+
     # albedo patches: cells of albedo_cell metres x the dominant normal axis
     keyp = np.concatenate([np.floor(P / st.albedo_cell).astype(np.int64),
                            (np.argmax(np.abs(N), axis=1) * 2 + (N[np.arange(n), np.argmax(np.abs(N), axis=1)] > 0))[:, None]],
@@ -482,19 +519,35 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     lum = L @ LUMINANCE_F64
     w = 1.0 / (lum + 0.05 * float(np.median(lum)) + 1e-9)
     area_k = np.array([float(tarea[t].sum()) for t in el_tris])
-    lam_k = area_k / max(float(area_k.mean()), 1e-12) if K else np.zeros(0)
+    # the sparsity prior weighs each unknown by how much light it sends to the photographed points (its
+    # column's norm), as a lasso on normalised columns does: weighing emitted power instead favoured
+    # cells close to the points, which explain them with the least power, and over-lit the table
+    # Cells the points see only through slivers (a gap between the mesh and the box, a grazing angle)
+    # have tiny columns: they would explain anything with implausible radiance at no cost, so they are
+    # priced at least as the median cell, and those under 2 % of it are not fitted at all.
+    cn = np.linalg.norm(A, axis=0) if K else np.zeros(0)
+    med = float(np.median(cn[cn > 0])) if (cn > 0).any() else 1.0
+    active = active[cn[active] >= 0.02 * med]
+    lam_k = np.maximum(cn, med) / max(med, 1e-12)
 
-    def fit_at(level: np.ndarray, iters: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Alternate emission and albedo with each channel's albedo level held at ``level (3,)``;
-        returns the emission, the patch albedo and each channel's residual (channels are independent)."""
+    def fit_at(level: np.ndarray, iters: int = 4, active: np.ndarray = active, sparsity: float = st.sparsity
+               ) -> tuple[tuple, np.ndarray, np.ndarray]:
+        """Alternate emission (of the unknowns ``active``) and albedo with each channel's albedo level held
+        at ``level (3,)``; returns (emission, unknowns' radiance, irradiance at the points), the patch
+        albedo and each channel's objective (channels are independent)."""
         rho = np.tile(level, (npatch, 1))
         e = lb.copy()
         l1 = np.zeros(3)
+        Ms = {lv: transport(lv) for lv in set(level.tolist())}
+        Mc = [Ms[lv] for lv in level.tolist()]
+        Ae = [A @ Mc[c] for c in range(3)]                     # irradiance per unit emission
+        Ekc = np.stack([Ek[:, c] + Ae[c] @ ((level[c] / np.pi) * reflect * Eu[:, c]) for c in range(3)], axis=1)
         for _ in range(iters):
-            ea, l1 = _solve_emission(rho[patch], Ek, A[:, active], L, w, lb[active], lam_k[active], st.sparsity)
+            ea, l1 = _solve_emission(rho[patch], Ekc, [x[:, active] for x in Ae], L, w, lb[active], lam_k[active],
+                                     sparsity)
             e = lb.copy()
             e[active] = ea
-            E = Ek + A @ e
+            E = Ekc + np.stack([Ae[c] @ e[:, c] for c in range(3)], axis=1)
             rho_new = np.empty((npatch, 3))
             for ch in range(3):
                 num = np.bincount(patch, weights=w * w * L[:, ch] * E[:, ch], minlength=npatch)
@@ -504,28 +557,50 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
             rho_new = np.clip(rho_new, *ALBEDO_RANGE)
             lvl = np.exp(np.mean(np.log(rho_new), axis=0))
             rho = np.clip(rho_new * (level / np.maximum(lvl, 1e-9)), *ALBEDO_RANGE)
-        E = Ek + A @ e
+        E = Ekc + np.stack([Ae[c] @ e[:, c] for c in range(3)], axis=1)
         pred = rho[patch] / np.pi * E
         res = np.sum((w[:, None] * (pred - L)) ** 2, axis=0)
         # the objective: data + few-bright-emitters prior + plausible-albedo prior on the level
         prior = st.level_prior * n * np.log(level / LEVEL_PRIOR_CENTRE) ** 2
-        return e, rho, res + 2 * l1 + prior
+        Lu = np.stack([Mc[c] @ (e[:, c] + (level[c] / np.pi) * reflect * Eu[:, c]) for c in range(3)], axis=1)
+        return (e, Lu, E), rho, res + 2 * l1 + prior
 
     if K == 0 or active.size == 0:
         # nothing unknown the points can see: the mesh and observed holes are the light (scan lighting)
         e = lb.copy()
+        Lu = lb.copy()
+        E = Ek.copy()
         rho = np.full((npatch, 3), 0.5)
         best_level, res_curve = None, []
         note = "no unseen or clipped light source visible from the photographed surfaces: lit by the scan itself"
     else:
         # each channel's albedo level where the photos are explained best (the light the known surfaces
         # send each other fixes it, channel by channel: the light's colour comes out of the fit)
+        # 1. where the light comes from: emission anywhere, priced by the sparsity prior; the level is the
+        # highest (the least light) that explains the photos within level_tolerance of the best (with
+        # emission free everywhere the level is barely identifiable: unknown cells make up any amount)
         res_curve = np.array([fit_at(np.full(3, lv), iters=2)[2] for lv in ALBEDO_LEVELS])   # (levels, 3)
-        # the highest level (the least light) that explains the photos within level_tolerance of the best:
-        # below it the unknown cells can make up any amount of light, so the residual alone barely changes
         ok = res_curve <= res_curve.min(axis=0) * (1 + st.level_tolerance)
-        best_level = np.asarray(ALBEDO_LEVELS)[[int(np.flatnonzero(ok[:, c]).max()) for c in range(3)]]
-        e, rho, _ = fit_at(best_level, iters=5)
+        level1 = np.asarray(ALBEDO_LEVELS)[[int(np.flatnonzero(ok[:, c]).max()) for c in range(3)]]
+        (e, Lu, E), rho, _ = fit_at(level1, iters=3)
+        best_level = level1
+        if st.max_emitters > 0:
+            # 2. few emitters: only the cells carrying support_share of that power (and the clipped regions)
+            # may emit; every other unseen cell only reflects. With the emitters pinned the light the room's
+            # surfaces send each other identifies each channel's level (as it does with the true lights)
+            pw = e @ LUMINANCE_F64 * area_k
+            order = np.argsort(-pw)
+            cum = np.cumsum(pw[order]) / max(float(pw.sum()), 1e-30)
+            keep = order[:max(1, int(np.searchsorted(cum, st.support_share)) + 1)][:st.max_emitters]
+            sup = np.union1d(np.intersect1d(keep, active), np.intersect1d(np.arange(box_unknown.size, K), active))
+            if sup.size:
+                res2 = np.array([fit_at(np.full(3, lv), iters=2, active=sup, sparsity=0.0)[2]
+                                 for lv in ALBEDO_LEVELS])
+                best_level = np.asarray(ALBEDO_LEVELS)[np.argmin(res2, axis=0)]
+                (e, Lu, E), rho, _ = fit_at(best_level, iters=5, active=sup, sparsity=0.0)
+                summary["stage1_level"] = [float(x) for x in level1]
+                summary["support_cells"] = int(sup.size)
+                res_curve = res2
         best_level = [float(x) for x in best_level]
         res_curve = (res_curve @ LUMINANCE_F64).tolist()
         note = ""
@@ -533,7 +608,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     # --- result ------------------------------------------------------------------------------------
     rad = vrad.copy()
     for k, tris in enumerate(el_tris):
-        rad[np.unique(AF[tris])] = e[k]
+        rad[np.unique(AF[tris])] = Lu[k]        # emitted + reflected
     power = area_k * (e @ LUMINANCE_F64) if K else np.zeros(0)
     total = float(power.sum())
     light_tri = np.zeros(len(AF), bool)
@@ -550,7 +625,6 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
                              "radiance": [round(float(x), 4) for x in e[k]],
                              "power_share": round(float(power[k] / total), 4),
                              "kind": "box cell" if k < box_unknown.size else "clipped region"})
-    E = Ek + A @ e
     pred = rho[patch] / np.pi * E
     rel = np.abs(pred - L).sum(axis=1) / np.maximum(L.sum(axis=1), 1e-9)
     summary.update(fitted=note == "", note=note, points=int(n), albedo_level=best_level,

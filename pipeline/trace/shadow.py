@@ -83,7 +83,8 @@ def _direct_light(scene: TraceScene, room_isect: Intersector, obj_isect: Interse
     """Light (luminance, as radiance from a white surface) that the area lights send to room points
     ``p`` without objects, and the part of it the objects block: ``(E0_direct, blocked)``, each (n,).
 
-    ``per[i]`` points on the lights per room point, stratified over the light selection; a shadow ray
+    ``per[i]`` points on the lights per room point (the caller passes a quarter of its hemisphere rays:
+    stratified and smoothed like the rest, few suffice), stratified over the light selection; a shadow ray
     first against the room (does the light reach the point at all?), then against the objects. This
     gives the objects' shadow its direction and its edge (hard under a small light, soft under a large
     one) with the noise of a few explicit samples, not of hemisphere rays that rarely meet a small lamp.
@@ -197,7 +198,7 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
     E0 = np.bincount(pr, weights=L0, minlength=n) / per
     if scene.area_lights.count:   # the lights sampled explicitly (left out of the rays above)
         Ed, blocked = _direct_light(scene, room_isect, obj_isect, p.astype(np.float64), ng.astype(np.float64),
-                                    per, rng, eps)
+                                    np.maximum(2, per // 4), rng, eps)
         E0 = E0 + Ed
         E1 = E0 - blocked
     else:

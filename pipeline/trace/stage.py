@@ -66,7 +66,24 @@ def plan(ctx: StageContext) -> list[Item]:
             chunk = fr[i:i + n]
             items.append(Item(key=f"{DROP_TPATH.format(scene=scene, drop=drop)}/f{chunk[0]:06d}-f{chunk[-1]:06d}",
                               data={"scene": scene, "drop": drop, "frames": chunk}))
+    if ctx.cfg.trace.lighting == "fit":
+        # the light fit once per scene, here, before the items spread over the workers (each would fit
+        # it again until the first had written it); the items read RUN/trace/<scene>/lights.npz
+        for scene in sorted({sc for sc, _ in drops}):
+            try:
+                _room(str(ctx.run_dir), scene, ctx.cfg.trace, ctx.cfg.run.seed, _stamps(ctx, scene))
+            except InputError as e:   # said by every item of the scene, which fails alone
+                log.warning("trace: light fit of %s: %s", scene, e)
     return items
+
+
+def _stamps(ctx: StageContext, scene_name: str) -> tuple:
+    """Stamps of the files a scene's room lighting is made from (the key of :func:`_room`'s cache)."""
+    scan = load_scan(ctx.run_dir, scene_name)
+    return tuple(file_stamp(p) for p in (path(ctx.run_dir, SCAN_TPATH, scene=scene_name),
+                                         path(ctx.run_dir, FRAMES_TPATH, scene=scene_name),
+                                         Path(room_trace_mesh(ctx.run_dir, scan, ctx.cfg.trace.room_mesh)))
+                 if p.is_file())
 
 
 def _instances(rf: RasterFrame, library: dict) -> list:
@@ -151,7 +168,7 @@ def fit_settings(cfg: TraceConfig, width: int):
 
     return FitSettings(points=cfg.fit_points, cell=cfg.fit_cell, stride=max(1, round(width / GRID_W)),
                        sparsity=cfg.fit_sparsity, level_prior=cfg.fit_albedo_prior,
-                       level_tolerance=cfg.fit_level_tolerance,
+                       level_tolerance=cfg.fit_level_tolerance, max_emitters=cfg.fit_emitters,
                        threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale)
 
 
@@ -234,11 +251,8 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     cfg = ctx.cfg.trace
     scene_name, drop = item.data["scene"], int(item.data["drop"])
     frames = [int(f) for f in item.data["frames"]]
-    scan = load_scan(ctx.run_dir, scene_name)
-    stamps = tuple(file_stamp(p) for p in (path(ctx.run_dir, SCAN_TPATH, scene=scene_name),
-                                       path(ctx.run_dir, FRAMES_TPATH, scene=scene_name),
-                                       Path(room_trace_mesh(ctx.run_dir, scan, cfg.room_mesh))) if p.is_file())
-    scan, rv, rf, rc, light_v, env_map, rl = _room(str(ctx.run_dir), scene_name, cfg, ctx.cfg.run.seed, stamps)
+    scan, rv, rf, rc, light_v, env_map, rl = _room(str(ctx.run_dir), scene_name, cfg, ctx.cfg.run.seed,
+                                                   _stamps(ctx, scene_name))
     library = {o.obj_id: o for o in load_objects(ctx.run_dir)}
     env = None if cfg.env_radiance < 0 else np.full(3, cfg.env_radiance, np.float32)
     scene = None

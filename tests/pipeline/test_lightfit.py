@@ -116,3 +116,61 @@ def test_save_load_round_trip(tmp_path):
     back = RoomLights.load(tmp_path / "lights.npz")
     assert np.array_equal(back.radiance, rl.radiance) and np.array_equal(back.light_tri, rl.light_tri)
     assert back.summary == rl.summary
+
+
+def render_ids(v, f, fr):
+    """Per frame, the hit triangle of each pixel's centre ray (-1 = none)."""
+    from pipeline.camera import Camera
+    from pipeline.trace.intersect import EmbreeIntersector
+
+    isect = EmbreeIntersector(np.asarray(v, np.float32), np.asarray(f, np.int32))
+    out = []
+    for _, Kf, T in fr:
+        cam = Camera(K=Kf, T_c2w=T, width=W, height=H)
+        o, d = cam.rays(np.arange(W * H), np.full((W * H, 2), 0.5, np.float32))
+        h = isect.intersect(o, d)
+        out.append(np.where(h.hit, h.prim, -1).reshape(H, W))
+    return out
+
+
+def test_closed_room_without_unseen_light_is_lit_by_itself(caplog):
+    """Every surface seen, nothing clipped: nothing to fit; said in one line, the mesh's colours light."""
+    v, f = box_room((-2, -2, 0), (2, 2, 2.5), n=6)
+    colors = np.full((len(v), 3), 140, np.uint8)
+    with caplog.at_level(logging.INFO, logger="pipeline.trace.lightfit"):
+        rl = fit_room_lights(v, f, colors, frames(4, 140), up=UP, rng=np.random.default_rng(0),
+                             settings=FitSettings(points=300, stride=2))
+    check_finite(rl)
+    assert not rl.summary["fitted"] and "lit by the scan itself" in rl.summary["note"]
+    assert not rl.light_tri.any()
+    assert np.allclose(rl.radiance[:len(v)], srgb_to_linear(np.array([140], np.uint8))[0], atol=1e-6)
+
+
+def test_room_lit_only_through_a_hole():
+    """A closed room with a window-sized hole in one wall that every photo shows clipped: the light is
+    found in the hole (the box cells behind it), nowhere else."""
+    v, f = box_room((-2, -2, 0), (2, 2, 2.5), n=8)
+    c = v[f].mean(axis=1)
+    hole = (c[:, 0] > 1.99) & (np.abs(c[:, 1]) < 0.6) & (c[:, 2] > 1.0) & (c[:, 2] < 2.0)
+    f = f[~hole]
+    colors = np.full((len(v), 3), 90, np.uint8)
+    fr = []
+    for k in range(5):   # cameras looking towards +x, the hole in view
+        a = -0.5 + 0.25 * k
+        T = look_at((-1.0, 1.2 * a, 1.4), (2.0, 0.0, 1.4))
+        fr.append((None, K, T))
+    ids = render_ids(v, f, fr)
+    photos = [np.repeat(np.where(i < 0, 255, 90).astype(np.uint8)[..., None], 3, axis=2) for i in ids]
+    fr = [(p, Kf, T) for p, (_, Kf, T) in zip(photos, fr)]
+    rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(2),
+                         settings=FitSettings(points=800, stride=2, cell=0.4))
+    check_finite(rl)
+    assert rl.summary["fitted"], rl.summary["note"]
+    em = rl.summary["emitters"]
+    # every cell the points can see only through the hole lies against the +x wall (the box is 2 cm
+    # outside the mesh): the light must be there, next to none of it in the room's other cells
+    share = sum(e["power_share"] for e in em if e["centre"][0] > 1.6)
+    assert share > 0.9, em[:5]
+    near = sum(e["power_share"] for e in em if e["centre"][0] > 1.9 and abs(e["centre"][1]) < 1.0
+               and 0.6 < e["centre"][2] < 2.4)
+    assert near > 0.5, em[:5]

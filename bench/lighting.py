@@ -1,0 +1,355 @@
+"""Lighting and compositing judged against Mitsuba 3: the pipeline's images of the light suite's rooms
+against the true images of the same rooms with the objects in them (issue: room lighting).
+
+Run: ``nice .venv/bin/python -m bench.lighting [--suite bench/cache/lightsuite] [--rooms a,b]
+[--variants fit,scan]``. Builds the suite first when it is missing (:mod:`bench.lightsuite`, cached; about
+50 min), then writes bench/results/lighting.json and lighting.png.
+
+For each room of the suite (its ``scan/`` folder is a 7-Scenes scan of the room WITHOUT objects, photos
+rendered by Mitsuba), the real CLI runs every stage up to raster once (``scansynth run --poses``, the
+objects at their true poses, every frame), then trace and composite once per variant on a copy:
+
+- ``published``: the published four point lights and the published blend (PBR x AO in the mask);
+- ``scan``: the lighting of the previous release (the room mesh's colours, clipped-photo lights and the
+  grey-world energy balance for unseen directions), full blend;
+- ``fit``: the emitters recovered by inverse rendering (:mod:`pipeline.trace.lightfit`), full blend;
+- ``oracle``: the true emitters handed to our tracer (``trace.lights_file`` from the suite's
+  ``lights.json``; the fit explains the rest), full blend: what the rest of the chain (BSDF, shadows,
+  edges, camera look) still loses with perfect lights.
+
+Metrics per frame, against the truth (8-bit sRGB, as written): PSNR and SSIM (skimage, 7x7, mean of the
+map) over the true object pixels and over a band of :data:`BAND` px around them (at 640 px width), the
+untouched photo's PSNR over the same band, and the per-channel brightness ratio of the objects (mean linear
+value of the composite over the truth's, object pixels). Lights: for each true emitter with at least a
+fifth of the true power, the recovered power within :data:`LIGHT_RADIUS` m of it over its true power, and
+the distance from it to that power's centroid. Seconds: CPU seconds of the trace and composite stages
+per frame (the child processes' user + system time), and the fit's own CPU seconds per scan.
+
+Honest tuning: :data:`TUNE_ROOMS` were used to choose the fit's settings; the headline figures are the
+:data:`HELD_OUT` rooms'. Both halves are reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
+SUITE = ROOT / "bench" / "cache" / "lightsuite"
+WORK = ROOT / "runs" / "bench-lighting"
+BAND = 16            # px at 640 width: the band around the objects
+LIGHT_RADIUS = 1.0   # m: recovered emitters this close to a true one count towards it
+TUNE_ROOMS = ("ceiling", "lamp_in_view", "window")      # the first three the suite renders
+HELD_OUT = ("spot", "coloured_walls", "dim")
+VARIANTS = ("published", "scan", "fit", "oracle")
+SETTINGS = {
+    "published": ["trace.lighting=published", "composite.mode=published"],
+    "scan": ["trace.lighting=scan"],
+    "fit": ["trace.lighting=fit"],
+    # + trace.lights_file; the other unseen cells only reflect (their emission priced out): the true lights alone
+    "oracle": ["trace.lighting=fit", "trace.fit_sparsity=100"],
+}
+
+log = logging.getLogger("bench.lighting")
+
+
+def _cli(args: list[str]) -> tuple[float, float]:
+    """Run ``python -m pipeline ARGS``; (wall seconds, CPU seconds of the child)."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    p = subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=ROOT, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if p.returncode != 0:
+        raise RuntimeError(f"scansynth {' '.join(args)} failed ({p.returncode}):\n{p.stderr[-3000:]}")
+    return wall, (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+
+
+def decode(img: np.ndarray) -> np.ndarray:
+    from pipeline.color import srgb_to_linear
+
+    return srgb_to_linear(img).astype(np.float64)
+
+
+def read_rgb(p: Path) -> np.ndarray:
+    import cv2
+
+    im = cv2.imread(str(p), cv2.IMREAD_COLOR)
+    if im is None:
+        raise FileNotFoundError(p)
+    return im[:, :, ::-1].copy()
+
+
+def psnr(a: np.ndarray, b: np.ndarray, m: np.ndarray) -> float:
+    if not m.any():
+        return float("nan")
+    d = a[m].astype(np.float64) - b[m].astype(np.float64)
+    mse = float(np.mean(d * d))
+    return float(10 * np.log10(255.0 ** 2 / max(mse, 1e-10)))
+
+
+def ssim(a: np.ndarray, b: np.ndarray, m: np.ndarray) -> float:
+    from skimage.metrics import structural_similarity
+
+    if not m.any():
+        return float("nan")
+    _, S = structural_similarity(a, b, channel_axis=2, win_size=7, data_range=255, full=True)
+    return float(S.mean(axis=2)[m].mean())
+
+
+def band_mask(mask: np.ndarray, px: int) -> np.ndarray:
+    import cv2
+
+    k = np.ones((2 * px + 1, 2 * px + 1), np.uint8)
+    return (cv2.dilate(mask.astype(np.uint8), k) > 0) & ~mask
+
+
+def write_inputs(room_dir: Path, work: Path, frames: int | None = None) -> tuple[Path, Path, Path]:
+    """Config, poses file and oracle lights file of a suite room, in ``work``."""
+    from bench.lightsuite import LMO
+
+    truth = room_dir / "truth"
+    objects = json.loads((truth / "objects.json").read_text())
+    room = json.loads((truth / "room.json").read_text())
+    work.mkdir(parents=True, exist_ok=True)
+    cfg = work / "config.toml"
+    cfg.write_text(f"""[run]
+seed = 0
+workers = 0
+
+[scan]
+paths = [{json.dumps(str((room_dir / 'scan').resolve()))}]
+format = "7scenes"
+
+[objects]
+paths = [{json.dumps(str(LMO))}]
+
+[select]
+max_frames = 0
+min_angle_deg = 0.0
+min_baseline_m = 0.0
+
+[raster]
+min_visible_area = 0.0
+""")
+    poses = work / "poses.json"
+    nf = int(room["frames"]) if frames is None else min(frames, int(room["frames"]))
+    poses.write_text(json.dumps([{"scene": "scan", "drop": 0, "frames": list(range(nf)),
+                                  "instances": [{"obj_id": o["obj_id"], "R_m2w": o["R_m2w"], "t_m2w": o["t_m2w"]}
+                                                for o in objects]}]))
+    lights = json.loads((truth / "lights.json").read_text())
+    oracle = work / "oracle_lights.json"
+    oracle.write_text(json.dumps([{"corners": e["corners"], "radiance": e["radiance_photo"]} for e in lights]))
+    return cfg, poses, oracle
+
+
+def light_figures(summary: dict, true_lights: list[dict]) -> list[dict]:
+    """Recovered power near each main true emitter (see the module docstring)."""
+    from pipeline.color import LUMINANCE_F64
+
+    rec = summary.get("emitters", [])
+    rp = np.array([np.pi * float(np.asarray(e["radiance"]) @ LUMINANCE_F64) * e["area_m2"] for e in rec])
+    rc = np.array([e["centre"] for e in rec]).reshape(-1, 3)
+    tp = np.array([np.pi * float(np.asarray(e["radiance_photo"]) @ LUMINANCE_F64) * e["area_m2"] for e in true_lights])
+    out = []
+    for e, p in zip(true_lights, tp):
+        if p < 0.2 * tp.sum():
+            continue
+        c = np.asarray(e["centre"])
+        near = np.linalg.norm(rc - c, axis=1) <= LIGHT_RADIUS if len(rc) else np.zeros(0, bool)
+        got = float(rp[near].sum()) if near.any() else 0.0
+        cen = (rp[near] @ rc[near] / got) if got > 0 else None
+        out.append({"name": e["name"], "true_power": round(float(p), 4), "power_ratio": round(got / p, 3),
+                    "position_error_m": None if cen is None else round(float(np.linalg.norm(cen - c)), 3)})
+    return out
+
+
+def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int | None = None) -> dict:
+    """Every variant on one suite room (the first ``frames`` frames scored; all of them by default)."""
+    truth = room_dir / "truth"
+    room = json.loads((truth / "room.json").read_text())
+    cfg, poses, oracle = write_inputs(room_dir, work, frames)
+    base = work / "base"
+    if not (base / "raster").is_dir():
+        shutil.rmtree(base, ignore_errors=True)
+        _cli(["run", str(cfg), "--out", str(base), "--poses", str(poses), "--to", "raster", "--progress", "off", "-q"])
+    n = int(room["frames"]) if frames is None else min(frames, int(room["frames"]))
+    w = int(room["width"])
+    band_px = max(2, round(BAND * w / 640))
+    res: dict = {"room": room["room"], "frames": n, "noise_ceiling_db": room["noise_ceiling"]["psnr_objects_db"],
+                 "variants": {}}
+    photo_band = []
+    for name in variants:
+        run = work / name
+        shutil.rmtree(run, ignore_errors=True)
+        shutil.copytree(base, run)
+        sets = list(SETTINGS[name]) + ([f"trace.lights_file={json.dumps(str(oracle))}"] if name == "oracle" else [])
+        # the copy's recorded config becomes the variant's (a run folder refuses another config on resume)
+        from pipeline.cli import CONFIG_NAME
+        from pipeline.config import dump_config, load_config
+
+        vcfg = load_config(run / CONFIG_NAME, sets)
+        (run / CONFIG_NAME).write_text(dump_config(vcfg))
+        args = ["run", str(run / CONFIG_NAME), "--out", str(run), "--from", "trace", "--to", "composite",
+                "--progress", "off", "-q"]
+        wall, cpu = _cli(args)
+        frames = []
+        for f in range(n):
+            comp_p = run / "composite" / "scan" / "drop0000" / f"f{f:06d}.png"
+            if not comp_p.is_file():
+                frames.append(None)
+                continue
+            comp = read_rgb(comp_p)
+            tru = read_rgb(truth / f"frame-{f:06d}.png")
+            photo = read_rgb(room_dir / "scan" / "frames" / f"frame-{f:06d}.color.png")
+            import cv2
+
+            mask = cv2.imread(str(truth / f"frame-{f:06d}.mask.png"), cv2.IMREAD_UNCHANGED) > 0
+            band = band_mask(mask, band_px)
+            lc, lt = decode(comp)[mask], decode(tru)[mask]
+            frames.append({"psnr_objects": psnr(comp, tru, mask), "ssim_objects": ssim(comp, tru, mask),
+                           "psnr_band": psnr(comp, tru, band), "ssim_band": ssim(comp, tru, band),
+                           "brightness": (lc.mean(axis=0) / np.maximum(lt.mean(axis=0), 1e-9)).tolist()})
+            if len(photo_band) < n:
+                photo_band.append(psnr(photo, tru, band))
+        ok = [fr for fr in frames if fr]
+        v = {k: float(np.mean([fr[k] for fr in ok])) for k in ("psnr_objects", "ssim_objects", "psnr_band", "ssim_band")}
+        v["brightness"] = np.mean([fr["brightness"] for fr in ok], axis=0).round(4).tolist()
+        v["frames_scored"] = len(ok)
+        v["cpu_s_per_frame"] = cpu / max(len(ok), 1)
+        v["wall_s"] = wall
+        lights_npz = run / "trace" / "scan" / "lights.npz"
+        if lights_npz.is_file():
+            from pipeline.trace.lightfit import RoomLights
+
+            s = RoomLights.load(lights_npz).summary
+            v["fit"] = {k: s.get(k) for k in ("fitted", "note", "seconds", "albedo_level", "albedo_mean",
+                                              "residual_median", "num_lights", "unknown_cells", "clipped_regions")}
+            if name == "fit":
+                v["lights"] = light_figures(s, json.loads((truth / "lights.json").read_text()))
+        st = {x["stage"]: x for x in json.loads((run / "run.json").read_text())["stages"]}
+        fit_s = float(v.get("fit", {}).get("seconds") or 0.0)
+        v["fit_s"] = fit_s
+        v["trace_s_per_frame"] = (st["trace"]["seconds"] - fit_s) / max(len(ok), 1)
+        v["composite_s_per_frame"] = st["composite"]["seconds"] / max(len(ok), 1)
+        v["per_frame"] = frames
+        res["variants"][name] = v
+        log.info("%s %-9s objects %.2f dB  band %.2f dB  brightness %s  trace %.2f s/frame, fit %.1f s", room["room"],
+                 name, v["psnr_objects"], v["psnr_band"], v["brightness"], v["trace_s_per_frame"], fit_s)
+    res["photo_band_psnr"] = float(np.mean(photo_band)) if photo_band else float("nan")
+    return res
+
+
+def summarise(rooms: dict, variants) -> dict:
+    out = {}
+    for part, names in (("held_out", HELD_OUT), ("tuned_on", TUNE_ROOMS), ("all", tuple(rooms))):
+        names = [r for r in names if r in rooms]
+        if not names:
+            continue
+        out[part] = {"rooms": names}
+        for v in variants:
+            vals = [rooms[r]["variants"][v] for r in names if v in rooms[r]["variants"]]
+            if not vals:
+                continue
+            out[part][v] = {
+                "psnr_objects_mean": round(float(np.mean([x["psnr_objects"] for x in vals])), 2),
+                "psnr_objects_min": round(float(np.min([x["psnr_objects"] for x in vals])), 2),
+                "psnr_band_minus_photo_min": round(float(np.min([rooms[r]["variants"][v]["psnr_band"]
+                                                                 - rooms[r]["photo_band_psnr"] for r in names])), 2),
+                "brightness_worst": round(float(max(abs(np.log(np.asarray(x["brightness"]))).max() for x in vals)), 3),
+                "cpu_s_per_frame": round(float(np.mean([x["cpu_s_per_frame"] for x in vals])), 3)}
+    return out
+
+
+def chart(rooms: dict, summary: dict, variants, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 3, figsize=(17, 5))
+    cols = {"published": "tab:gray", "scan": "tab:orange", "fit": "tab:blue", "oracle": "tab:green"}
+    for v in variants:
+        xs = [rooms[r]["variants"][v]["cpu_s_per_frame"] for r in rooms if v in rooms[r]["variants"]]
+        ys = [rooms[r]["variants"][v]["psnr_objects"] for r in rooms if v in rooms[r]["variants"]]
+        ax[0].scatter(xs, ys, c=cols.get(v), alpha=0.4, s=20)
+        if "held_out" in summary and v in summary["held_out"]:
+            s = summary["held_out"][v]
+            ax[0].scatter([s["cpu_s_per_frame"]], [s["psnr_objects_mean"]], c=cols.get(v), s=120, marker="*",
+                          label=f"{v}: {s['psnr_objects_mean']:.1f} dB held-out mean")
+    ax[0].axhline(28, ls="--", c="k", lw=0.8)
+    ax[0].set_xlabel("CPU s per frame (trace + composite)")
+    ax[0].set_ylabel("objects PSNR vs Mitsuba truth (dB)")
+    ax[0].set_title("accuracy against cost (dots: rooms, stars: held-out mean)")
+    ax[0].legend(fontsize=8)
+    names = list(rooms)
+    x = np.arange(len(names))
+    wd = 0.8 / max(len(variants), 1)
+    for k, v in enumerate(variants):
+        ax[1].bar(x + k * wd, [rooms[r]["variants"].get(v, {}).get("psnr_objects", np.nan) for r in names], wd,
+                  color=cols.get(v), label=v)
+    ax[1].axhline(24, ls=":", c="k", lw=0.8)
+    ax[1].set_xticks(x + 0.4 - wd / 2, [r + ("*" if r in HELD_OUT else "") for r in names], rotation=20, fontsize=8)
+    ax[1].set_ylabel("objects PSNR (dB)")
+    ax[1].set_title("per room (* held out)")
+    ax[1].legend(fontsize=8)
+    for k, v in enumerate(variants):
+        ax[2].bar(x + k * wd, [rooms[r]["variants"].get(v, {}).get("psnr_band", np.nan) - rooms[r]["photo_band_psnr"]
+                               for r in names], wd, color=cols.get(v), label=v)
+    ax[2].axhline(3, ls="--", c="k", lw=0.8)
+    ax[2].axhline(0, c="k", lw=0.5)
+    ax[2].set_xticks(x + 0.4 - wd / 2, names, rotation=20, fontsize=8)
+    ax[2].set_ylabel("band PSNR minus the untouched photo's (dB)")
+    ax[2].set_title(f"band of {BAND} px around the objects")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--suite", default=str(SUITE))
+    p.add_argument("--rooms", default="")
+    p.add_argument("--variants", default=",".join(VARIANTS))
+    p.add_argument("--work", default=str(WORK))
+    p.add_argument("--out", default=str(RESULTS / "lighting"))
+    p.add_argument("--frames", type=int, default=None, help="score the first N frames of each room (tuning)")
+    p.add_argument("--set", action="append", default=[], help="extra TABLE.KEY=VALUE for the fit variant (tuning)")
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", stream=sys.stdout)
+    suite = Path(a.suite)
+    from bench.lightsuite import ROOMS, build_suite
+
+    rooms = [r for r in (a.rooms.split(",") if a.rooms else ROOMS) if r]
+    missing = [r for r in rooms if not (suite / r / "done.json").is_file()]
+    if missing:
+        log.info("building the suite's rooms %s (cached in %s)", missing, suite)
+        build_suite(suite, missing)
+    variants = tuple(v for v in a.variants.split(",") if v)
+    SETTINGS["fit"] = SETTINGS["fit"] + list(a.set)
+    res = {}
+    for r in rooms:
+        res[r] = run_room(suite / r, Path(a.work) / r, variants, a.frames)
+    summary = summarise(res, variants)
+    doc = {"summary": summary, "rooms": res, "band_px_at_640": BAND, "tuned_on": TUNE_ROOMS, "held_out": HELD_OUT,
+           "suite": str(suite), "machine": os.uname().nodename, "date": time.strftime("%Y-%m-%d %H:%M")}
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.with_suffix(".json").write_text(json.dumps(doc, indent=1, default=float))
+    chart(res, summary, variants, out.with_suffix(".png"))
+    print(json.dumps(summary, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
