@@ -64,8 +64,8 @@ SETTINGS = {
 log = logging.getLogger("bench.lighting")
 
 
-def _cli(args: list[str]) -> tuple[float, float]:
-    """Run ``python -m pipeline ARGS``; (wall seconds, CPU seconds of the child)."""
+def _cli(args: list[str]) -> tuple[float, float, str]:
+    """Run ``python -m pipeline ARGS``; (wall seconds, CPU seconds of the child, its stderr)."""
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     p = subprocess.run([sys.executable, "-m", "pipeline", *args], cwd=ROOT, capture_output=True, text=True)
@@ -73,7 +73,7 @@ def _cli(args: list[str]) -> tuple[float, float]:
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     if p.returncode != 0:
         raise RuntimeError(f"scansynth {' '.join(args)} failed ({p.returncode}):\n{p.stderr[-3000:]}")
-    return wall, (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+    return wall, (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime), p.stderr
 
 
 def decode(img: np.ndarray) -> np.ndarray:
@@ -175,7 +175,8 @@ def light_figures(summary: dict, true_lights: list[dict]) -> list[dict]:
     return out
 
 
-def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int | None = None) -> dict:
+def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int | None = None,
+             reuse: bool = False) -> dict:
     """Every variant on one suite room (the first ``frames`` frames scored; all of them by default)."""
     truth = room_dir / "truth"
     room = json.loads((truth / "room.json").read_text())
@@ -183,7 +184,8 @@ def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int 
     base = work / "base"
     if not (base / "raster").is_dir():
         shutil.rmtree(base, ignore_errors=True)
-        _cli(["run", str(cfg), "--out", str(base), "--poses", str(poses), "--to", "raster", "--progress", "off", "-q"])
+        _cli(["run", str(cfg), "--out", str(base), "--poses", str(poses), "--to", "raster", "--progress", "off",
+              "-q"])
     n = int(room["frames"]) if frames is None else min(frames, int(room["frames"]))
     w = int(room["width"])
     band_px = max(2, round(BAND * w / 640))
@@ -192,18 +194,30 @@ def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int 
     photo_band = []
     for name in variants:
         run = work / name
-        shutil.rmtree(run, ignore_errors=True)
-        shutil.copytree(base, run)
         sets = list(SETTINGS[name]) + ([f"trace.lights_file={json.dumps(str(oracle))}"] if name == "oracle" else [])
-        # the copy's recorded config becomes the variant's (a run folder refuses another config on resume)
-        from pipeline.cli import CONFIG_NAME
-        from pipeline.config import dump_config, load_config
+        marker = run / "bench_variant.json"
+        if reuse and marker.is_file() and json.loads(marker.read_text())["sets"] == sets:
+            got = json.loads(marker.read_text())["seconds"]                 # finished earlier with the same settings
+            wall, cpu = got[:2]
+            fit_s = got[2] if len(got) > 2 else None
+        else:
+            shutil.rmtree(run, ignore_errors=True)
+            shutil.copytree(base, run)
+            # the copy's recorded config becomes the variant's (a run folder refuses another config on resume)
+            from pipeline.cli import CONFIG_NAME
+            from pipeline.config import dump_config, load_config
 
-        vcfg = load_config(run / CONFIG_NAME, sets)
-        (run / CONFIG_NAME).write_text(dump_config(vcfg))
-        args = ["run", str(run / CONFIG_NAME), "--out", str(run), "--from", "trace", "--to", "composite",
-                "--progress", "off", "-q"]
-        wall, cpu = _cli(args)
+            vcfg = load_config(run / CONFIG_NAME, sets)
+            (run / CONFIG_NAME).write_text(dump_config(vcfg))
+            args = ["run", str(run / CONFIG_NAME), "--out", str(run), "--from", "trace", "--to", "composite",
+                    "--progress", "off", "-v"]
+            wall, cpu, err = _cli(args)
+            # the fit's CPU seconds, from its log line (the saved lights carry no timings: same bytes per seed)
+            import re
+
+            m = re.findall(r"light fit of \S+: .*, ([0-9.]+) s", err)
+            fit_s = float(m[-1]) if m else 0.0
+            marker.write_text(json.dumps({"sets": sets, "seconds": [wall, cpu, fit_s]}))
         frames = []
         for f in range(n):
             comp_p = run / "composite" / "scan" / "drop0000" / f"f{f:06d}.png"
@@ -234,12 +248,14 @@ def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int 
             from pipeline.trace.lightfit import RoomLights
 
             s = RoomLights.load(lights_npz).summary
-            v["fit"] = {k: s.get(k) for k in ("fitted", "note", "seconds", "albedo_level", "albedo_mean",
+            if fit_s is None:     # a run of an earlier version, whose lights carried their seconds
+                fit_s = float(s.get("seconds") or 0.0)
+            v["fit"] = {k: s.get(k) for k in ("fitted", "note", "albedo_level", "albedo_mean",
                                               "residual_median", "num_lights", "unknown_cells", "clipped_regions")}
             if name == "fit":
                 v["lights"] = light_figures(s, json.loads((truth / "lights.json").read_text()))
         st = {x["stage"]: x for x in json.loads((run / "run.json").read_text())["stages"]}
-        fit_s = float(v.get("fit", {}).get("seconds") or 0.0)
+        fit_s = float(fit_s or 0.0)
         v["fit_s"] = fit_s
         v["trace_s_per_frame"] = (st["trace"]["seconds"] - fit_s) / max(len(ok), 1)
         v["composite_s_per_frame"] = st["composite"]["seconds"] / max(len(ok), 1)
@@ -324,6 +340,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", default=str(WORK))
     p.add_argument("--out", default=str(RESULTS / "lighting"))
     p.add_argument("--frames", type=int, default=None, help="score the first N frames of each room (tuning)")
+    p.add_argument("--reuse", action="store_true", help="keep variants already run in --work with the same settings")
     p.add_argument("--set", action="append", default=[], help="extra TABLE.KEY=VALUE for the fit variant (tuning)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", stream=sys.stdout)
@@ -339,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
     SETTINGS["fit"] = SETTINGS["fit"] + list(a.set)
     res = {}
     for r in rooms:
-        res[r] = run_room(suite / r, Path(a.work) / r, variants, a.frames)
+        res[r] = run_room(suite / r, Path(a.work) / r, variants, a.frames, a.reuse)
     summary = summarise(res, variants)
     doc = {"summary": summary, "rooms": res, "band_px_at_640": BAND, "tuned_on": TUNE_ROOMS, "held_out": HELD_OUT,
            "suite": str(suite), "machine": os.uname().nodename, "date": time.strftime("%Y-%m-%d %H:%M")}

@@ -101,10 +101,11 @@ class RoomLights:
         from pipeline.io import atomic_save_npz
         import json
 
+        keep = {k: v for k, v in self.summary.items() if k != "seconds"}   # same seed, same bytes: no timings
         atomic_save_npz(path, vertices=self.vertices, faces=self.faces, radiance=self.radiance,
                         light_tri=self.light_tri, num_mesh_vertices=np.int64(self.num_mesh_vertices),
                         num_mesh_tris=np.int64(self.num_mesh_tris),
-                        summary=np.frombuffer(json.dumps(self.summary, sort_keys=True).encode(), np.uint8))
+                        summary=np.frombuffer(json.dumps(keep, sort_keys=True).encode(), np.uint8))
 
     @staticmethod
     def load(path) -> "RoomLights":

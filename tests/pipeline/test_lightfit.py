@@ -115,7 +115,7 @@ def test_save_load_round_trip(tmp_path):
     rl.save(tmp_path / "lights.npz")
     back = RoomLights.load(tmp_path / "lights.npz")
     assert np.array_equal(back.radiance, rl.radiance) and np.array_equal(back.light_tri, rl.light_tri)
-    assert back.summary == rl.summary
+    assert back.summary == {k: v for k, v in rl.summary.items() if k != "seconds"}   # no timings on disk
 
 
 def render_ids(v, f, fr):
