@@ -210,8 +210,9 @@ def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, sta
     """The scan's fitted lights (:func:`pipeline.trace.lightfit.fit_room_lights`), once per scan.
 
     Kept in ``RUN/trace/<scene>/lights.npz`` with the key it was made for (the fit's settings, the seed,
-    and the stamps of scan.json and the room mesh): a worker or a later run with the same key reads it,
-    anything else fits again (the same bytes for the same key: writers racing write the same file).
+    and the contents of scan.json, the frames table and the room mesh): a worker or a later run with the
+    same key reads it, anything else fits again (the same bytes for the same key: writers racing write the
+    same file).
     """
     import hashlib
     import json
@@ -221,9 +222,14 @@ def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, sta
     from pipeline.trace.lightfit import RoomLights, fit_room_lights
 
     st = fit_settings(cfg, scan.width)
-    lf = [str(x) for x in file_stamp(Path(cfg.lights_file))] if cfg.lights_file else []
-    key = hashlib.sha256(json.dumps([repr(st), cfg.photo_frames, seed, [list(s[1:]) for s in stamps], lf],
-                                    sort_keys=True).encode()).hexdigest()[:16]
+    # the key hashes the files' contents, not their stamps: a resumed or repeated run writes the same bytes
+    def digest(p: str) -> str:
+        q = Path(p)
+        return hashlib.sha256(q.read_bytes()).hexdigest() if q.is_file() else ""
+
+    files = [digest(s[0]) for s in stamps] + ([digest(cfg.lights_file)] if cfg.lights_file else [])
+    key = hashlib.sha256(json.dumps([repr(st), cfg.photo_frames, seed, files], sort_keys=True).encode()
+                         ).hexdigest()[:16]
     out = path(run_dir, ROOM_LIGHTS_TPATH, scene=scan.name)
     if out.is_file():
         try:

@@ -330,7 +330,7 @@ def test_photo_lighting_lights_what_the_photos_see_clipped_and_is_off_with_zero_
     for name, level, frames in (("none", None, 24), ("grey", 180, 24), ("clipped", 255, 24), ("off", 255, 0)):
         run = tmp_path / name
         _make_run(run, photo_level=level)
-        ctx = _ctx(run, spp=8, shadow_samples=4, photo_frames=frames)
+        ctx = _ctx(run, spp=8, shadow_samples=4, photo_frames=frames, lighting="scan")   # the scan mode's photo lights
         STAGE.run_item(ctx, STAGE.plan(ctx)[0])
         out[name] = FrameKey("room", 0, 0).path(run, TRACE_TPATH).read_bytes()
         a = load_npz(FrameKey("room", 0, 0).path(run, TRACE_TPATH))
