@@ -251,9 +251,10 @@ class TraceConfig:
                                  "the Mitsuba light suite's rooms)", min=0.0)
     fit_albedo_prior: float = option(0.0, "fit lighting: weight of the prior pulling each channel's mean room albedo "
                                      "towards 0.45 (0 = the photos alone decide)", min=0.0)
-    fit_level_tolerance: float = option(0.05, "fit lighting: each channel's room albedo is the highest level whose "
-                                        "photo residual is within this share of the best (the least light that "
-                                        "explains the photos)", min=0.0)
+    fit_level_tolerance: float = option(0.05, "fit lighting, first stage (where the light is): each channel's room "
+                                        "albedo is the highest level whose objective is within this share of the "
+                                        "best (the least light that explains the photos); the second stage takes "
+                                        "its minimum with the emitters found", min=0.0)
     fit_emitters: int = option(24, "fit lighting: at most this many cells of the closing box emit in the fit's second "
                                "stage (the rest reflect); 0 = one stage, emission anywhere", min=0)
     lights_file: str = option("", "fit lighting: JSON file of emitters you know, [{\"corners\": 4 x [x, y, z] world "
