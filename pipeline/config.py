@@ -249,8 +249,6 @@ class TraceConfig:
     fit_sparsity: float = option(0.2, "fit lighting: weight of the few-bright-emitters prior (L1 on emission, each "
                                  "cell weighed by the light it sends to the photographed points; tuned on half of "
                                  "the Mitsuba light suite's rooms)", min=0.0)
-    fit_albedo_prior: float = option(0.0, "fit lighting: weight of the prior pulling each channel's mean room albedo "
-                                     "towards 0.45 (0 = the photos alone decide)", min=0.0)
     fit_level_tolerance: float = option(0.05, "fit lighting, first stage (where the light is): each channel's room "
                                         "albedo is the highest level whose objective is within this share of the "
                                         "best (the least light that explains the photos); the second stage takes "

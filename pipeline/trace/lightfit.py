@@ -49,8 +49,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.color import LUMINANCE_F64, srgb_to_linear
+from pipeline.color import LUMINANCE_F64, exposure_ratio, srgb_to_linear
 from pipeline.geometry import up_frame
+from pipeline.trace.photolights import EXPOSURE_RANGE, MIN_EXPOSURE_SAMPLES
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +60,6 @@ ALBEDO_LEVELS = (0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6, 0.65, 0.
 MIN_FIT_POINTS = 50           # unclipped room points needed to fit anything
 DARK_LEVEL = 0.004            # linear photo level below which a pixel carries no information (sRGB ~ 13)
 MARGIN = 0.02                 # metres between the mesh's extent and the closing box
-LEVEL_PRIOR_CENTRE = 0.45     # the albedo level the level prior pulls towards (typical of furnished rooms)
 LOW_FILL_M = 0.8              # box cells lower than this above the scan's lowest point are filled, not fitted
 ASSUMED_CEILING_M = 2.5       # a scan shorter than this (floor to top) is closed at this height above its lowest point
 LIGHT_SHARE = 0.002           # emitters with at least this share of the fitted power are sampled as lights
@@ -78,7 +78,6 @@ class FitSettings:
     threshold: int = 250        # 8-bit level at which a channel counts as clipped
     min_share: float = 0.5      # share of clipped observations that makes a mesh vertex an emitter
     sparsity: float = 0.2       # L1 weight on emission (columns normalised; relative to the data term's scale)
-    level_prior: float = 0.0    # weight of the log-normal prior on each channel's albedo level (per point)
     level_tolerance: float = 0.05  # the highest albedo level whose objective is within this share of the best
     support_share: float = 0.9  # stage 2: the cells carrying this share of stage 1's power emit, the rest reflect
     max_emitters: int = 24      # stage 2: at most this many unknown cells emit (0 = no second stage)
@@ -172,6 +171,26 @@ def closing_box(points: np.ndarray, up: np.ndarray, cell: float, margin: float =
 # The fit
 # ---------------------------------------------------------------------------------------------------
 
+def _at(values: np.ndarray, faces: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Per-vertex ``values`` interpolated at barycentric points ``(u, v)`` of triangles ``prim``."""
+    f = faces[prim]
+    u, v = u[:, None], v[:, None]
+    return (1 - u - v) * values[f[:, 0]] + u * values[f[:, 1]] + v * values[f[:, 2]]
+
+
+def _gather(isect, points: np.ndarray, normals: np.ndarray, rays: int, rng: np.random.Generator, eps: float):
+    """``rays`` cosine-weighted hemisphere rays from each point: (owner (R,) point index, hits)."""
+    from pipeline.trace.intersect import offset_origins
+    from pipeline.trace.sampling import cosine_hemisphere, to_world
+
+    owner = np.repeat(np.arange(len(points)), rays)
+    u = rng.random((2, owner.size))
+    dl, _ = cosine_hemisphere(u[0], u[1])
+    n = normals[owner]
+    d = to_world(dl, n).astype(np.float32)
+    return owner, isect.intersect(offset_origins(points[owner].astype(np.float32), n.astype(np.float32), d, eps), d)
+
+
 def _nnls(Q: np.ndarray, g: np.ndarray, lam: np.ndarray, iters: int = 400) -> np.ndarray:
     """``argmin_x>=0 0.5 x'Qx - g'x + lam'x`` by accelerated projected gradient (FISTA)."""
     n = g.shape[0]
@@ -242,7 +261,6 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     """
     from pipeline.camera import Camera
     from pipeline.trace.intersect import EmbreeIntersector, offset_origins
-    from pipeline.trace.sampling import cosine_hemisphere, to_world
 
     t0 = time.process_time()
     st = settings
@@ -289,7 +307,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     box_clip = np.zeros(nb, np.int64)
     vsum = np.zeros((nv, 3))
     vn = np.zeros(nv, np.int64)
-    obs_p, obs_n, obs_L, obs_t = [], [], [], []
+    obs_p, obs_n, obs_L = [], [], []
     exposures = []
     for photo, K, T in frames:
         photo = np.asarray(photo, np.uint8)
@@ -307,14 +325,11 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         expo = 1.0
         if mesh_rad is not None:
             ok = np.flatnonzero(on_mesh & ~clip)
-            if ok.size >= 64:
-                fr = F[hits.prim[ok]]
-                a, b = hits.u[ok][:, None], hits.v[ok][:, None]
-                ref = ((1 - a - b) * mesh_rad[fr[:, 0]] + a * mesh_rad[fr[:, 1]] + b * mesh_rad[fr[:, 2]]) @ LUMINANCE_F64
-                ph = lin[ok] @ LUMINANCE_F64
-                good = (ref > DARK_LEVEL * scale_r) & (ph > DARK_LEVEL * scale_r)
-                if good.sum() >= 64:
-                    expo = float(np.clip(np.median(ph[good] / ref[good]), 0.25, 4.0))
+            ratio = exposure_ratio(lin[ok] @ LUMINANCE_F64,
+                                   _at(mesh_rad, F, hits.prim[ok], hits.u[ok], hits.v[ok]) @ LUMINANCE_F64,
+                                   floor=DARK_LEVEL * scale_r, min_samples=MIN_EXPOSURE_SAMPLES)
+            if ratio is not None:
+                expo = float(np.clip(ratio, *EXPOSURE_RANGE))
         exposures.append(expo)
         lin /= expo
         if on_mesh.any():
@@ -334,7 +349,6 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
                 obs_p.append(o[good] + hits.t[good, None] * d[good])
                 obs_n.append(n)
                 obs_L.append(lin[good])
-                obs_t.append(prim)
         on_box = hits.hit & (hits.prim >= nt) & (hits.prim < nbt)
         if on_box.any():
             cell = (hits.prim[on_box] - nt) // 2
@@ -398,12 +412,11 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     P = np.concatenate(obs_p)
     N = np.concatenate(obs_n)
     L = np.concatenate(obs_L)
-    TP = np.concatenate(obs_t)
     if len(P) < MIN_FIT_POINTS:
         return fallback(f"only {len(P)} unclipped lit room pixels in the photos (need {MIN_FIT_POINTS}): lit by "
                         f"the mesh colours alone")
     sel = np.sort(rng.choice(len(P), size=min(len(P), st.points), replace=False))
-    P, N, L, TP = P[sel], N[sel], L[sel], TP[sel]
+    P, N, L = P[sel], N[sel], L[sel]
     n = len(P)
     eps = 1e-3 * max(float(np.ptp(AV, axis=0).max()), 1e-3)
 
@@ -423,17 +436,10 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
 
     # known irradiance: cosine-weighted rays against mesh + box
     M = st.gather_rays
-    pr = np.repeat(np.arange(n), M)
-    u = rng.random((2, pr.size))
-    dl, _ = cosine_hemisphere(u[0], u[1])
-    dw = to_world(dl, N[pr]).astype(np.float32)
-    org = offset_origins(P[pr].astype(np.float32), N[pr].astype(np.float32), dw, eps)
-    hh = isect.intersect(org, dw)
+    pr, hh = _gather(isect, P, N, M, rng, eps)
     Lg = np.zeros((pr.size, 3))
     hit = np.flatnonzero(hh.hit)
-    fr = AF[hh.prim[hit]]
-    a, b = hh.u[hit][:, None], hh.v[hit][:, None]
-    Lg[hit] = (1 - a - b) * vrad[fr[:, 0]] + a * vrad[fr[:, 1]] + b * vrad[fr[:, 2]]
+    Lg[hit] = _at(vrad, AF, hh.prim[hit], hh.u[hit], hh.v[hit])
     Lg[hit[(unknown_tri[hh.prim[hit]] >= 0) | (hh.prim[hit] >= nbt)]] = 0.0   # sampled explicitly below
     Ek = np.pi * Lg.reshape(n, M, 3).mean(axis=1)
 
@@ -486,23 +492,14 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     nbu = box_unknown.size
     if nbu:
         Mu = max(16, M // 2)
-        cu = np.repeat(bcen[box_unknown], Mu, axis=0)
-        nu = np.repeat(bnrm[box_unknown], Mu, axis=0)
-        ku = np.repeat(np.arange(nbu), Mu)
-        uu = rng.random((2, cu.size // 3))
-        dlu, _ = cosine_hemisphere(uu[0], uu[1])
-        dwu = to_world(dlu, nu).astype(np.float32)
-        hu = isect.intersect(offset_origins(cu.astype(np.float32), nu.astype(np.float32), dwu, eps), dwu)
+        ku, hu = _gather(isect, bcen[box_unknown], bnrm[box_unknown], Mu, rng, eps)
         hit = np.flatnonzero(hu.hit)
         tri = hu.prim[hit]
         j = unknown_tri[tri]
         un = j >= 0
         np.add.at(G, (ku[hit[un]], j[un]), np.pi / Mu)
         kn = hit[~un & (tri < nbt)]
-        fr = AF[hu.prim[kn]]
-        a, b = hu.u[kn][:, None], hu.v[kn][:, None]
-        Lk = (1 - a - b) * vrad[fr[:, 0]] + a * vrad[fr[:, 1]] + b * vrad[fr[:, 2]]
-        np.add.at(Eu, ku[kn], np.pi / Mu * Lk)
+        np.add.at(Eu, ku[kn], np.pi / Mu * _at(vrad, AF, hu.prim[kn], hu.u[kn], hu.v[kn]))
     reflect = np.zeros(K)
     reflect[:nbu] = 1.0                      # clipped mesh regions are lamps: they do not reflect here
 
@@ -561,10 +558,9 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         E = Ekc + np.stack([Ae[c] @ e[:, c] for c in range(3)], axis=1)
         pred = rho[patch] / np.pi * E
         res = np.sum((w[:, None] * (pred - L)) ** 2, axis=0)
-        # the objective: data + few-bright-emitters prior + plausible-albedo prior on the level
-        prior = st.level_prior * n * np.log(level / LEVEL_PRIOR_CENTRE) ** 2
+        # the objective: data + few-bright-emitters prior
         Lu = np.stack([Mc[c] @ (e[:, c] + (level[c] / np.pi) * reflect * Eu[:, c]) for c in range(3)], axis=1)
-        return (e, Lu, E), rho, res + 2 * l1 + prior
+        return (e, Lu, E), rho, res + 2 * l1
 
     if K == 0 or active.size == 0:
         # nothing unknown the points can see: the mesh and observed holes are the light (scan lighting)

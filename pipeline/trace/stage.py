@@ -167,7 +167,7 @@ def fit_settings(cfg: TraceConfig, width: int):
     from pipeline.trace.photolights import GRID_W
 
     return FitSettings(points=cfg.fit_points, cell=cfg.fit_cell, stride=max(1, round(width / GRID_W)),
-                       sparsity=cfg.fit_sparsity, level_prior=cfg.fit_albedo_prior,
+                       sparsity=cfg.fit_sparsity,
                        level_tolerance=cfg.fit_level_tolerance, max_emitters=cfg.fit_emitters,
                        threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale)
 
