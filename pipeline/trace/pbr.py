@@ -255,6 +255,41 @@ def _scatter(scene: TraceScene, s: Surface, wo: np.ndarray, beta: np.ndarray, dr
     return L, wi, weight, pdf
 
 
+def light_sample(scene: TraceScene, p: np.ndarray, u0: np.ndarray, u1: np.ndarray, u2: np.ndarray, *,
+                 one_sided: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One point on the area lights per point ``p (R, 3)`` (chosen by power, then by area), seen from ``p``.
+
+    Shared by next-event estimation (:func:`area_light_nee`) and the shadow pass's direct light. Works in
+    ``p``'s precision.
+
+    Returns
+    -------
+    wl : (R, 3) unit directions from ``p`` to the light points
+    dist : (R,) distances
+    Le : (R, 3) emitted radiance there
+    cos_l : (R,) cosine at the light (``one_sided``: > 0 only on the emitting side; else absolute)
+    pA : (R,) float64 pdf per unit light area
+    """
+    tri, b1, b2, pA = sample_area_lights(scene.area_lights, scene.vertices, scene.faces, u0, u1, u2)
+    f = scene.faces[tri]
+    V = scene.vertices
+    q0, q1, q2 = V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]
+    b1 = b1.astype(p.dtype)[:, None]
+    b2 = b2.astype(p.dtype)[:, None]
+    b0 = 1 - b1 - b2
+    lp = b0 * q0 + b1 * q1 + b2 * q2
+    E = scene.emission
+    Le = b0 * E[f[:, 0]] + b1 * E[f[:, 1]] + b2 * E[f[:, 2]]
+    dvec = lp - p
+    dist = np.linalg.norm(dvec, axis=1)
+    wl = dvec / np.maximum(dist, 1e-12)[:, None]
+    if one_sided:
+        cos_l = -_dot(wl, scene.tri_normal[tri])          # > 0: the point sees the emitting side
+    else:
+        cos_l = np.abs(_dot(wl, _unit(np.cross(q1 - q0, q2 - q0))))
+    return wl, dist, Le, cos_l, pA
+
+
 def area_light_nee(scene: TraceScene, s: Surface, lobes, wo_l: np.ndarray, frame, beta: np.ndarray,
                    u0: np.ndarray, u1: np.ndarray, u2: np.ndarray, eps: float, *,
                    one_sided: bool) -> tuple[np.ndarray, int]:
@@ -276,23 +311,7 @@ def area_light_nee(scene: TraceScene, s: Surface, lobes, wo_l: np.ndarray, frame
     """
     n = s.p.shape[0]
     L = np.zeros((n, 3), np.float32)
-    tri, b1, b2, pA = sample_area_lights(scene.area_lights, scene.vertices, scene.faces, u0, u1, u2)
-    f = scene.faces[tri]
-    V = scene.vertices
-    q0, q1, q2 = V[f[:, 0]], V[f[:, 1]], V[f[:, 2]]
-    b1 = b1.astype(np.float32)[:, None]
-    b2 = b2.astype(np.float32)[:, None]
-    b0 = 1 - b1 - b2
-    lp = b0 * q0 + b1 * q1 + b2 * q2
-    E = scene.emission
-    Le = b0 * E[f[:, 0]] + b1 * E[f[:, 1]] + b2 * E[f[:, 2]]
-    dvec = lp - s.p
-    dist = np.linalg.norm(dvec, axis=1)
-    wl = dvec / np.maximum(dist, 1e-12)[:, None]
-    if one_sided:
-        cos_l = -_dot(wl, scene.tri_normal[tri])          # > 0: the point sees the emitting side
-    else:
-        cos_l = np.abs(_dot(wl, _unit(np.cross(q1 - q0, q2 - q0))))
+    wl, dist, Le, cos_l, pA = light_sample(scene, s.p, u0, u1, u2, one_sided=one_sided)
     pdf_sa = pA * dist.astype(np.float64) ** 2 / np.maximum(cos_l, 1e-12)
     fc, pdf_b = bsdf.eval_pdf(lobes, wo_l, frame_to_local(wl, frame))
     ok = (_dot(wl, s.ng) > 0) & (cos_l > 1e-6) & (fc.max(axis=1) > 0)

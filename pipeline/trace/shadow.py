@@ -89,28 +89,17 @@ def _direct_light(scene: TraceScene, room_isect: Intersector, obj_isect: Interse
     gives the objects' shadow its direction and its edge (hard under a small light, soft under a large
     one) with the noise of a few explicit samples, not of hemisphere rays that rarely meet a small lamp.
     """
-    from pipeline.trace.lights import sample_area_lights
+    from pipeline.trace.pbr import light_sample
 
     n = p.shape[0]
-    al = scene.area_lights
     pr = np.repeat(np.arange(n), per)
     m = per[pr]
     rank = np.arange(pr.size) - np.repeat(np.cumsum(per) - per, per)
     u0 = (rank + rng.random(pr.size)) / m                     # stratified light choice
-    tri, b1, b2, pA = sample_area_lights(al, scene.vertices, scene.faces, u0, rng.random(pr.size),
-                                         rng.random(pr.size))
-    f = scene.faces[tri]
-    Vx = scene.vertices.astype(np.float64)
-    q0, q1, q2 = Vx[f[:, 0]], Vx[f[:, 1]], Vx[f[:, 2]]
-    b0 = 1 - b1 - b2
-    lp = b0[:, None] * q0 + b1[:, None] * q1 + b2[:, None] * q2
-    E = scene.emission
-    Le = (b0[:, None] * E[f[:, 0]] + b1[:, None] * E[f[:, 1]] + b2[:, None] * E[f[:, 2]]) @ LUMINANCE_F64
-    dv = lp - p[pr]
-    dist = np.linalg.norm(dv, axis=1)
-    wl = dv / np.maximum(dist, 1e-12)[:, None]
+    wl, dist, Le, cos_l, pA = light_sample(scene, p[pr], u0, rng.random(pr.size), rng.random(pr.size),
+                                           one_sided=False)
+    Le = Le @ LUMINANCE_F64
     cos_p = np.einsum("ij,ij->i", wl, ng[pr])
-    cos_l = np.abs(np.einsum("ij,ij->i", wl, scene.tri_normal[tri]))
     ok = np.flatnonzero((cos_p > 0) & (cos_l > 1e-6) & (dist > 4 * eps))
     e0 = np.zeros(n)
     blocked = np.zeros(n)
