@@ -44,6 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.reference import masked_psnr
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 SUITE = ROOT / "bench" / "cache" / "lightsuite"
@@ -89,14 +91,6 @@ def read_rgb(p: Path) -> np.ndarray:
     if im is None:
         raise FileNotFoundError(p)
     return im[:, :, ::-1].copy()
-
-
-def psnr(a: np.ndarray, b: np.ndarray, m: np.ndarray) -> float:
-    if not m.any():
-        return float("nan")
-    d = a[m].astype(np.float64) - b[m].astype(np.float64)
-    mse = float(np.mean(d * d))
-    return float(10 * np.log10(255.0 ** 2 / max(mse, 1e-10)))
 
 
 def ssim(a: np.ndarray, b: np.ndarray, m: np.ndarray) -> float:
@@ -232,11 +226,11 @@ def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int 
             mask = cv2.imread(str(truth / f"frame-{f:06d}.mask.png"), cv2.IMREAD_UNCHANGED) > 0
             band = band_mask(mask, band_px)
             lc, lt = decode(comp)[mask], decode(tru)[mask]
-            frames.append({"psnr_objects": psnr(comp, tru, mask), "ssim_objects": ssim(comp, tru, mask),
-                           "psnr_band": psnr(comp, tru, band), "ssim_band": ssim(comp, tru, band),
+            frames.append({"psnr_objects": masked_psnr(comp, tru, mask), "ssim_objects": ssim(comp, tru, mask),
+                           "psnr_band": masked_psnr(comp, tru, band), "ssim_band": ssim(comp, tru, band),
                            "brightness": (lc.mean(axis=0) / np.maximum(lt.mean(axis=0), 1e-9)).tolist()})
             if len(photo_band) < n:
-                photo_band.append(psnr(photo, tru, band))
+                photo_band.append(masked_psnr(photo, tru, band))
         ok = [fr for fr in frames if fr]
         v = {k: float(np.mean([fr[k] for fr in ok])) for k in ("psnr_objects", "ssim_objects", "psnr_band", "ssim_band")}
         v["brightness"] = np.mean([fr["brightness"] for fr in ok], axis=0).round(4).tolist()

@@ -93,6 +93,11 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.reference import masked_psnr, raycast
+from pipeline.color import encode_u8, srgb_to_linear
+from pipeline.geometry import look_at
+from pipeline.io import atomic_write_bytes, atomic_write_image, atomic_write_json
+
 log = logging.getLogger("bench.lightsuite")
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -302,18 +307,6 @@ def write_ply(path: Path, v: np.ndarray, f: np.ndarray, n: np.ndarray | None = N
     return str(path)
 
 
-def srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    x = np.asarray(c, np.float64) / 255.0
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb_u8(x: np.ndarray) -> np.ndarray:
-    """Linear -> 8-bit sRGB codes, values above 1 clip (pipeline.color's curve)."""
-    from pipeline.color import encode_u8
-
-    return encode_u8(np.asarray(x, np.float32))
-
-
 def read_model(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """A BOP model PLY (mm): vertices (V, 3) metres, faces (T, 3), normals (V, 3) or None, colours (V, 3) uint8.
 
@@ -357,19 +350,6 @@ def read_model(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
 def intrinsics(width: int, height: int) -> np.ndarray:
     s = width / WIDTH
     return np.array([[FX * s, 0, (width - 1) / 2], [0, FY * s, (height - 1) / 2], [0, 0, 1.0]])
-
-
-def look_at(eye, target) -> np.ndarray:
-    """Camera-to-world (OpenCV axes: x right, y down, z forward), world z up."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0, 0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
-    return T
 
 
 def _ray_box_t(o, d):
@@ -458,12 +438,6 @@ def room_triangles(spec: RoomSpec) -> tuple[np.ndarray, np.ndarray]:
     return V, F
 
 
-def raycast(meshes, K, T, width, height):
-    from bench.reference import raycast as o3d_raycast
-
-    return o3d_raycast(meshes, K, T, width, height)
-
-
 # ---------------------------------------------------------------------------------------------------
 # Mitsuba
 # ---------------------------------------------------------------------------------------------------
@@ -481,7 +455,7 @@ def _texture(surface: Surface, rng: np.random.Generator, size: int) -> np.ndarra
 
     tex = make_texture(surface.kind, rng, surface.base, size)
     lin = np.clip(srgb_to_linear(tex), 0.05, 0.85)
-    return linear_to_srgb_u8(lin)
+    return encode_u8(lin)
 
 
 def scene_files(spec: RoomSpec, objects: list[dict], models: dict, folder: Path, seed: int,
@@ -595,7 +569,7 @@ def choose_exposure(renderer: Renderer, poses, K, width, height, level: float, s
     lo, hi = -20.0, 20.0
     for _ in range(60):
         mid = 0.5 * (lo + hi)
-        m = float(linear_to_srgb_u8(imgs * math.exp(mid)).mean())
+        m = float(encode_u8(imgs * math.exp(mid)).mean())
         lo, hi = (mid, hi) if m < level else (lo, mid)
     return float(math.exp(0.5 * (lo + hi)))
 
@@ -634,31 +608,12 @@ def crop_window(objects, models, spec: RoomSpec, T, K, width, height, margin: in
     return x0, y0, x1, y1
 
 
-def _atomic(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-
-
-def _write_json(path: Path, doc) -> None:
-    _atomic(path, (json.dumps(doc, indent=1) + "\n").encode())
-
-
-def _write_png(path: Path, img: np.ndarray) -> None:
-    import cv2
-
-    a = img[..., ::-1] if img.ndim == 3 else img
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(a))
-    assert ok
-    _atomic(path, buf.tobytes())
-
-
 def _write_npy(path: Path, arr: np.ndarray) -> None:
     import io
 
     b = io.BytesIO()
     np.save(b, arr)
-    _atomic(path, b.getvalue())
+    atomic_write_bytes(path, b.getvalue())
 
 
 def _write_npz(path: Path, arrays: dict) -> None:
@@ -666,13 +621,7 @@ def _write_npz(path: Path, arrays: dict) -> None:
 
     b = io.BytesIO()
     np.savez_compressed(b, **{k: (v.astype(np.float16) if v.dtype.kind == "f" else v) for k, v in arrays.items()})
-    _atomic(path, b.getvalue())
-
-
-def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray, peak: float = 255.0) -> float:
-    d = a[mask].astype(np.float64) - b[mask].astype(np.float64)
-    mse = float(np.mean(d ** 2)) if d.size else 0.0
-    return float("inf") if mse == 0 else 10 * math.log10(peak ** 2 / mse)
+    atomic_write_bytes(path, b.getvalue())
 
 
 def load_models(obj_ids=OBJ_IDS, folder: Path = LMO) -> dict:
@@ -827,7 +776,7 @@ def build_room(out: Path, name: str, *, frames: int = FRAMES, width: int = WIDTH
                 "seconds_exposure": time.perf_counter() - t0,
                 "objects": [{"obj_id": o["obj_id"], "R_m2w": o["R_m2w"].tolist(), "t_m2w": o["t_m2w"].tolist()}
                             for o in objects]}
-        _write_json(plan_path, plan)
+        atomic_write_json(plan_path, plan)
     poses = np.asarray(plan["poses"])
     exposure = float(plan["exposure"])
     objects = [{"obj_id": o["obj_id"], "R_m2w": np.asarray(o["R_m2w"]), "t_m2w": np.asarray(o["t_m2w"])}
@@ -837,8 +786,8 @@ def build_room(out: Path, name: str, *, frames: int = FRAMES, width: int = WIDTH
     obj_meshes = [(models[o["obj_id"]][0] @ o["R_m2w"].T + o["t_m2w"], models[o["obj_id"]][1]) for o in objects]
     lights_mesh = [quads_mesh([(e.corners[0], e.corners[1] - e.corners[0], e.corners[3] - e.corners[0])])
                    for e in spec.emitters]
-    _atomic(scan / "camera-intrinsics.txt", matrix_text(K, "%.18e"))
-    _atomic(scan / "gravity-direction.txt", matrix_text(np.array([[0.0], [0.0], [-1.0]]), "%.18e"))
+    atomic_write_bytes(scan / "camera-intrinsics.txt", matrix_text(K, "%.18e"))
+    atomic_write_bytes(scan / "gravity-direction.txt", matrix_text(np.array([[0.0], [0.0], [-1.0]]), "%.18e"))
     for i, T in enumerate(poses):
         if _frame_done(root, i):
             continue
@@ -854,23 +803,23 @@ def build_room(out: Path, name: str, *, frames: int = FRAMES, width: int = WIDTH
         t_photo = time.perf_counter() - t0
         truth, tinfo, renders = truth_image(R, photo, mask, T, K, width, height, crop, boxes, spp_crop,
                                             spp_objects, fs + 1, exposure)
-        photo_u8, truth_u8 = linear_to_srgb_u8(photo), linear_to_srgb_u8(truth)
+        photo_u8, truth_u8 = encode_u8(photo), encode_u8(truth)
         if i == 0:   # the noise ceiling: the truth again with other seeds (the photo is the scan's: kept)
             t0 = time.perf_counter()
             rer, _, _ = truth_image(R, photo, mask, T, K, width, height, crop, boxes, spp_crop, spp_objects,
                                     fs + 500, exposure)
-            rer_u8 = linear_to_srgb_u8(rer)
-            _write_png(truth_dir / "frame-000000.rerender.png", rer_u8)
+            rer_u8 = encode_u8(rer)
+            atomic_write_image(truth_dir / "frame-000000.rerender.png", rer_u8)
             _write_npy(truth_dir / "frame-000000.rerender.npy", rer.astype(np.float16))
             obj_px = mask > 0
             bg = np.zeros_like(obj_px)
             bg[crop[1]:crop[3], crop[0]:crop[2]] = True
             bg &= ~obj_px
             near = bg & (np.abs(truth - photo).max(-1) > 0.01 * max(1e-6, float(photo[bg].mean())))
-            _write_json(truth_dir / "noise_ceiling.json", {
-                "psnr_objects_db": psnr(truth_u8, rer_u8, obj_px),
-                "psnr_crop_background_db": psnr(truth_u8, rer_u8, bg),
-                "psnr_crop_background_changed_db": psnr(truth_u8, rer_u8, near),
+            atomic_write_json(truth_dir / "noise_ceiling.json", {
+                "psnr_objects_db": masked_psnr(truth_u8, rer_u8, obj_px),
+                "psnr_crop_background_db": masked_psnr(truth_u8, rer_u8, bg),
+                "psnr_crop_background_changed_db": masked_psnr(truth_u8, rer_u8, near),
                 "changed_background_px": int(near.sum()),
                 "rel_rmse_objects_linear": float(np.sqrt(np.mean((truth[obj_px] - rer[obj_px]) ** 2))
                                                  / max(1e-12, float(np.mean(truth[obj_px])))),
@@ -883,8 +832,8 @@ def build_room(out: Path, name: str, *, frames: int = FRAMES, width: int = WIDTH
         _write_npy(truth_dir / f"frame-{i:06d}.photo.npy", photo.astype(np.float16))
         _write_npy(truth_dir / f"frame-{i:06d}.truth.npy", truth.astype(np.float16))
         _write_npz(truth_dir / f"frame-{i:06d}.renders.npz", renders)
-        _write_png(truth_dir / f"frame-{i:06d}.mask.png", mask)
-        _write_png(truth_dir / f"frame-{i:06d}.png", truth_u8)
+        atomic_write_image(truth_dir / f"frame-{i:06d}.mask.png", mask)
+        atomic_write_image(truth_dir / f"frame-{i:06d}.png", truth_u8)
         write_frame(scan, "7scenes", i, photo_u8, depth_mm, T, True)
         rec = {"frame": i, "crop": list(crop), "object_boxes": [list(b) for b in boxes],
                "seconds_photo": t_photo, **tinfo,
@@ -893,15 +842,15 @@ def build_room(out: Path, name: str, *, frames: int = FRAMES, width: int = WIDTH
                "lights_visible_px": {e.name: int((lidx == k).sum()) for k, e in enumerate(spec.emitters)},
                "object_px": {str(o["obj_id"]): int((mask == k + 1).sum()) for k, o in enumerate(objects)},
                "mean_srgb_photo": float(photo_u8.mean()), "clipped_fraction_photo": float((photo > 1).any(-1).mean())}
-        _write_json(truth_dir / f"frame-{i:06d}.json", rec)
+        atomic_write_json(truth_dir / f"frame-{i:06d}.json", rec)
         log.info("%s frame %d: %.1f s (photo %.1f, crop pair %.1f, objects %.1f), crop %s, mean sRGB %.0f", name, i,
                  rec["seconds"], t_photo, tinfo["seconds_crop_pair"], tinfo["seconds_objects"], crop,
                  rec["mean_srgb_photo"])
     recs = [json.loads((truth_dir / f"frame-{i:06d}.json").read_text()) for i in range(len(poses))]
-    _write_json(truth_dir / "objects.json", [
+    atomic_write_json(truth_dir / "objects.json", [
         {"obj_id": o["obj_id"], "model": str((LMO / f"obj_{o['obj_id']:06d}.ply").resolve()),
          "R_m2w": o["R_m2w"].tolist(), "t_m2w": o["t_m2w"].tolist()} for o in objects])
-    _write_json(truth_dir / "lights.json", [
+    atomic_write_json(truth_dir / "lights.json", [
         {"name": e.name, "type": "area", "shape": "rectangle", "one_sided": True, "corners": e.corners.tolist(),
          "normal": e.normal.tolist(), "centre": e.centre.tolist(), "area_m2": e.area,
          "radiance": e.radiance.tolist(), "radiance_photo": (exposure * e.radiance).tolist(), "note": e.note,
@@ -928,8 +877,8 @@ def build_room(out: Path, name: str, *, frames: int = FRAMES, width: int = WIDTH
         "frames_info": recs,
         "world": "z up, metres; poses camera-to-world, OpenCV camera axes (x right, y down, z forward)",
     }
-    _write_json(truth_dir / "room.json", room)
-    _write_json(done, {"room": name, "finished": time.time()})
+    atomic_write_json(truth_dir / "room.json", room)
+    atomic_write_json(done, {"room": name, "finished": time.time()})
     return room
 
 

@@ -37,6 +37,15 @@ def raycast(meshes: list[tuple[np.ndarray, np.ndarray]], K: np.ndarray, T_c2w: n
     return np.where(hit, t, 0).astype(np.float32), idx
 
 
+def masked_psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray, peak: float = 255.0) -> float:
+    """PSNR (dB) of images ``a`` and ``b`` over the pixels in ``mask``: NaN for an empty mask, inf when equal."""
+    if not mask.any():
+        return float("nan")
+    d = a[mask].astype(np.float64) - b[mask].astype(np.float64)
+    mse = float(np.mean(d * d))
+    return float("inf") if mse == 0 else float(10 * np.log10(peak ** 2 / mse))
+
+
 def iou(a: np.ndarray, b: np.ndarray) -> float:
     u = np.logical_or(a, b).sum()
     return 1.0 if u == 0 else float(np.logical_and(a, b).sum() / u)
