@@ -62,6 +62,7 @@ DARK_LEVEL = 0.004            # linear photo level below which a pixel carries n
 MARGIN = 0.02                 # metres between the mesh's extent and the closing box
 LOW_FILL_M = 0.8              # box cells lower than this above the scan's lowest point are filled, not fitted
 ASSUMED_CEILING_M = 2.5       # a scan shorter than this (floor to top) is closed at this height above its lowest point
+PRIOR_ALBEDO = 0.5            # albedo at which the sparsity prior's weight is measured against the data term
 LIGHT_SHARE = 0.002           # emitters with at least this share of the fitted power are sampled as lights
 
 
@@ -229,7 +230,10 @@ def _solve_emission(rho_pt: np.ndarray, Ek: np.ndarray, A_ch, L: np.ndarray, w: 
         y = w * L[:, ch] - s * (Ek[:, ch] + A @ lb[:, ch])
         Q = B.T @ B
         g = B.T @ y
-        scale = float(np.mean(np.diag(Q))) if K else 1.0
+        # the prior's weight is the data term's scale at a fixed albedo, not at the level being tried:
+        # scaled with the level (as rho^2) it priced the light a low level needs less than a high level's,
+        # and the least-light level search drifted to the darkest albedo
+        scale = float(np.mean(np.sum((A * (w * PRIOR_ALBEDO / np.pi)[:, None]) ** 2, axis=0))) if K else 1.0
         lam = sparsity * scale * lam_k
         x = _nnls(Q, g, lam)
         e[:, ch] = lb[:, ch] + x
@@ -579,6 +583,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         res_curve = np.array([fit_at(np.full(3, lv), iters=2)[2] for lv in ALBEDO_LEVELS])   # (levels, 3)
         ok = res_curve <= res_curve.min(axis=0) * (1 + st.level_tolerance)
         level1 = np.asarray(ALBEDO_LEVELS)[[int(np.flatnonzero(ok[:, c]).max()) for c in range(3)]]
+        summary["stage1_residuals"] = [round(float(r), 3) for r in res_curve @ LUMINANCE_F64]
         (e, Lu, E), rho, _ = fit_at(level1, iters=3)
         best_level = level1
         if st.max_emitters > 0:
@@ -596,6 +601,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
                 best_level = np.asarray(ALBEDO_LEVELS)[np.argmin(res2, axis=0)]
                 (e, Lu, E), rho, _ = fit_at(best_level, iters=5, active=sup, sparsity=0.0)
                 summary["stage1_level"] = [float(x) for x in level1]
+                summary["level_residuals_rgb"] = (res2 / res2.min(axis=0)).round(4).T.tolist()
                 summary["support_cells"] = int(sup.size)
                 res_curve = res2
         best_level = [float(x) for x in best_level]
