@@ -255,6 +255,12 @@ class TraceConfig:
                                         "its minimum with the emitters found", min=0.0)
     fit_emitters: int = option(24, "fit lighting: at most this many cells of the closing box emit in the fit's second "
                                "stage (the rest reflect); 0 = one stage, emission anywhere", min=0)
+    fit_refine: float = option(0.1, "fit lighting, third stage: each emitting cell is refined into lamps of this size, "
+                               "metres, at the box or hanging up to 0.75 m below a ceiling cell where no photo saw "
+                               "free space (a small spot over a table); 0 = keep the cells", min=0.0)
+    fit_albedo_shrink: float = option(1.0, "fit lighting: pull of each albedo patch toward the room's albedo level, "
+                                      "in mean points per patch (0 = each patch free: a bright table top becomes bright "
+                                      "albedo, not light; tuned on half of the Mitsuba light suite's rooms)", min=0.0)
     lights_file: str = option("", "fit lighting: JSON file of emitters you know, [{\"corners\": 4 x [x, y, z] world "
                               "metres, \"radiance\": [r, g, b] linear, 1 = sensor white}]; they light the room as "
                               "given and the fit explains only the rest")

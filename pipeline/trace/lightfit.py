@@ -29,9 +29,19 @@ Yu et al., "Inverse Global Illumination" (SIGGRAPH 1999), reduced to what a CPU 
    (relative error, an L1 prior on emitted power: few, bright emitters) with the albedo, over a search
    of the albedo's overall level, the one thing a diffuse image cannot tell from the light's strength
    on its own: the light the known surfaces send each other (``E_known``) pins it.
+   Stage 2 lets only the cells that carry most of that light emit (the rest reflect) and takes each
+   channel's level at the residual's minimum. Patch albedos are pulled toward the level (``albedo_shrink``
+   pseudo-points per patch): left free, a patch turns a bright table top into bright albedo instead of
+   light, and the objects standing on it come out too dark.
+   Stage 3 (``refine``): each emitting cell is cut into lamps of ``refine`` metres, at the box and, under a
+   ceiling cell, hanging up to ``REFINE_DEPTHS[-1]`` below it in free space no photo saw; the sparsity
+   prior picks among them, the level is searched again with the lamps pinned (a parabola through the
+   lowest residuals), and the chosen lamps are refitted without the prior. A 10 cm spot 1.2 m above a
+   table is then found there, not smeared over a 0.4 m ceiling cell 0.65 m higher.
 5. **Result.** :class:`RoomLights`: the mesh plus the box with a linear radiance per vertex (the mesh's
    colours, fitted radiance on emitters and unseen cells) and the triangles to sample as lights
-   (emitters with a visible share of the power). The trace stage lights and shadows the objects with it.
+   (emitters with a visible share of the power; the lamps join the mesh as small one-sided rectangles).
+   The trace stage lights and shadows the objects with it.
 
 White balance comes from the same fit: each channel is fitted on its own, so the emitters get the colour
 that explains several surfaces under one light, and the objects' own colours are lit in the photo's
@@ -63,6 +73,8 @@ MARGIN = 0.02                 # metres between the mesh's extent and the closing
 LOW_FILL_M = 0.8              # box cells lower than this above the scan's lowest point are filled, not fitted
 ASSUMED_CEILING_M = 2.5       # a scan shorter than this (floor to top) is closed at this height above its lowest point
 PRIOR_ALBEDO = 0.5            # albedo at which the sparsity prior's weight is measured against the data term
+REFINE_DEPTHS = (0.0, 0.25, 0.5, 0.75)  # stage 3: metres below an emitting ceiling cell a lamp may hang
+LAMP_MIN_M = 1.5              # stage 3: a hanging lamp is at least this far above the scan's lowest point
 LIGHT_SHARE = 0.002           # emitters with at least this share of the fitted power are sampled as lights
 
 
@@ -75,6 +87,7 @@ class FitSettings:
     emitter_samples: int = 2    # area samples per (point, unknown) pair
     cell: float = 0.4           # metres, size of the closing box's cells
     albedo_cell: float = 0.5    # metres, size of an albedo patch
+    albedo_shrink: float = 1.0  # prior pulling each patch's albedo to the room's level, in mean points per patch
     stride: int = 8             # photo pixels between grid rays
     threshold: int = 250        # 8-bit level at which a channel counts as clipped
     min_share: float = 0.5      # share of clipped observations that makes a mesh vertex an emitter
@@ -82,6 +95,7 @@ class FitSettings:
     level_tolerance: float = 0.05  # the highest albedo level whose objective is within this share of the best
     support_share: float = 0.9  # stage 2: the cells carrying this share of stage 1's power emit, the rest reflect
     max_emitters: int = 24      # stage 2: at most this many unknown cells emit (0 = no second stage)
+    refine: float = 0.1         # stage 3: metres, size of the lamps the emitting cells are refined into (0 = off)
     radiance_scale: float = 1.0  # the trace stage's: radiance = this x linear colour
 
 
@@ -217,9 +231,11 @@ def _nnls(Q: np.ndarray, g: np.ndarray, lam: np.ndarray, iters: int = 400) -> np
 
 
 def _solve_emission(rho_pt: np.ndarray, Ek: np.ndarray, A_ch, L: np.ndarray, w: np.ndarray,
-                    lb: np.ndarray, lam_k: np.ndarray, sparsity: float) -> tuple[np.ndarray, float]:
+                    lb: np.ndarray, lam_k: np.ndarray, sparsity: float, scale: float | None = None
+                    ) -> tuple[np.ndarray, float]:
     """Emission (K, 3) >= lb minimising the weighted residual of ``L = rho/pi (Ek + A e)`` plus an L1 prior
-    on emitted power; returns it and the prior's value per channel (3,)."""
+    on emitted power (``sparsity x scale x lam_k``; ``scale`` by default the columns' data scale at
+    ``PRIOR_ALBEDO``); returns it and the prior's value per channel (3,)."""
     K = A_ch[0].shape[1]
     e = np.zeros((K, 3))
     cost = np.zeros(3)
@@ -233,12 +249,117 @@ def _solve_emission(rho_pt: np.ndarray, Ek: np.ndarray, A_ch, L: np.ndarray, w: 
         # the prior's weight is the data term's scale at a fixed albedo, not at the level being tried:
         # scaled with the level (as rho^2) it priced the light a low level needs less than a high level's,
         # and the least-light level search drifted to the darkest albedo
-        scale = float(np.mean(np.sum((A * (w * PRIOR_ALBEDO / np.pi)[:, None]) ** 2, axis=0))) if K else 1.0
-        lam = sparsity * scale * lam_k
+        sc = (scale if scale is not None else
+              float(np.mean(np.sum((A * (w * PRIOR_ALBEDO / np.pi)[:, None]) ** 2, axis=0))) if K else 1.0)
+        lam = sparsity * sc * lam_k
         x = _nnls(Q, g, lam)
         e[:, ch] = lb[:, ch] + x
         cost[ch] = float(lam @ x)          # the prior's part of the objective (the data part: the caller's)
     return e, cost
+
+
+def _curve_minimum(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Per column of ``y (len(x), C)``, where a parabola through the lowest sample and its two neighbours
+    has its minimum (the lowest sample itself at either end of ``x``)."""
+    out = np.empty(y.shape[1])
+    for c in range(y.shape[1]):
+        i = int(np.argmin(y[:, c]))
+        out[c] = x[i]
+        if 0 < i < len(x) - 1:
+            (x0, x1, x2), (y0, y1, y2) = x[i - 1:i + 2], y[i - 1:i + 2, c]
+            den = (x0 - x1) * (x0 - x2) * (x1 - x2)
+            a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / den
+            b = (x2 * x2 * (y0 - y1) + x1 * x1 * (y2 - y0) + x0 * x0 * (y1 - y2)) / den
+            if a > 0:
+                out[c] = float(np.clip(-b / (2 * a), x0, x2))
+    return out
+
+
+def _quad_columns(isect, P: np.ndarray, N: np.ndarray, quads: np.ndarray, normals: np.ndarray, samples: int,
+                  rng: np.random.Generator, eps: float) -> np.ndarray:
+    """(n, C) irradiance at points ``P`` (normals ``N``) per unit radiance of each one-sided rectangle
+    ``quads (C, 4, 3)`` emitting along ``normals (C, 3)``: ``samples`` area samples per pair, with visibility
+    through ``isect``."""
+    from pipeline.trace.intersect import offset_origins
+
+    n, C = len(P), len(quads)
+    out = np.zeros((n, C))
+    Pi = np.repeat(P, samples, axis=0)
+    Ni = np.repeat(N, samples, axis=0)
+    for c in range(C):
+        q = quads[c]
+        a, b = q[1] - q[0], q[3] - q[0]
+        area = float(np.linalg.norm(np.cross(a, b)))
+        r = rng.random((2, n * samples))
+        dv = q[0] + r[0][:, None] * a + r[1][:, None] * b - Pi
+        dist = np.linalg.norm(dv, axis=1)
+        wl = dv / np.maximum(dist, 1e-12)[:, None]
+        cos_i = np.einsum("ij,ij->i", wl, Ni)
+        cos_l = -(wl @ normals[c])
+        ok = np.flatnonzero((cos_i > 0) & (cos_l > 0) & (dist > 4 * eps))
+        if ok.size == 0:
+            continue
+        o2 = offset_origins(Pi[ok].astype(np.float32), Ni[ok].astype(np.float32), wl[ok].astype(np.float32), eps)
+        occ = isect.occluded(o2, wl[ok].astype(np.float32), (dist[ok] - 3 * eps).astype(np.float32))
+        g = np.zeros(n * samples)
+        vis = ok[~occ]
+        g[vis] = cos_i[vis] * cos_l[vis] / dist[vis] ** 2 * area
+        out[:, c] = g.reshape(n, samples).mean(axis=1)
+    return out
+
+
+def _lamp_candidates(isect, cells: np.ndarray, BV: np.ndarray, bnrm: np.ndarray, upv: np.ndarray, size: float,
+                     h_min: float, cams: list, eps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Small lamps an emitting box cell may stand for: the cell cut into squares of about ``size`` metres, and
+    for a ceiling cell the same squares hung ``REFINE_DEPTHS`` below it, in free space no photo saw
+    (``cams``: ``(K, T_c2w, width, height)``) and at least ``h_min`` high. Returns corners (C, 4, 3), normals
+    (C, 3) and the cell each came from (C,)."""
+    quads, nrm, parent, depth = [], [], [], []
+    for c in cells:
+        q = BV[4 * c: 4 * c + 4]
+        a, b = q[1] - q[0], q[3] - q[0]
+        na = max(1, int(round(np.linalg.norm(a) / size)))
+        nb_ = max(1, int(round(np.linalg.norm(b) / size)))
+        ceiling = float(bnrm[c] @ upv) < -0.5
+        for d in (REFINE_DEPTHS if ceiling else (0.0,)):
+            for i in range(na):
+                for j in range(nb_):
+                    o = q[0] + (i / na) * a + (j / nb_) * b + d * bnrm[c]
+                    quads.append(np.stack([o, o + a / na, o + a / na + b / nb_, o + b / nb_]))
+                    nrm.append(bnrm[c])
+                    parent.append(c)
+                    depth.append(d)
+    if not quads:
+        return np.zeros((0, 4, 3)), np.zeros((0, 3)), np.zeros(0, np.int64)
+    quads, nrm, parent, depth = np.asarray(quads), np.asarray(nrm), np.asarray(parent), np.asarray(depth)
+    cen = quads.mean(axis=1)
+    hung = depth > 0
+    keep = ~hung | (cen @ upv >= h_min)
+    # a hanging lamp needs free space up to its ceiling cell, and no photo may have seen where it hangs
+    idx = np.flatnonzero(hung & keep)
+    if idx.size:
+        dn = -nrm[idx].astype(np.float32)
+        blocked = isect.occluded((cen[idx] + eps * dn).astype(np.float32), dn, (depth[idx] - 2 * eps).astype(np.float32))
+        keep[idx[blocked]] = False
+        for K, T, w, h in cams:
+            idx = np.flatnonzero(hung & keep)
+            if idx.size == 0:
+                break
+            R, t = np.asarray(T)[:3, :3], np.asarray(T)[:3, 3]
+            pc = (cen[idx] - t) @ R
+            z = pc[:, 2]
+            front = z > 1e-6
+            uv = (pc[:, :2] / np.where(front, z, 1.0)[:, None]) * [K[0][0], K[1][1]] + [K[0][2], K[1][2]]
+            inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+            j = idx[inside]
+            if j.size == 0:
+                continue
+            dv = cen[j] - t
+            dist = np.linalg.norm(dv, axis=1)
+            seen = ~isect.occluded(np.repeat(t[None], j.size, axis=0).astype(np.float32),
+                                   (dv / dist[:, None]).astype(np.float32), (dist - eps).astype(np.float32))
+            keep[j[seen]] = False
+    return quads[keep], nrm[keep], parent[keep]
 
 
 def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None, frames, *,
@@ -518,6 +639,12 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     _, patch = np.unique(keyp, axis=0, return_inverse=True)
     patch = patch.ravel()
     npatch = int(patch.max()) + 1
+    summary["albedo_patches"] = npatch
+    # the albedo prior: each patch's (log) albedo is drawn toward the room's level as if albedo_shrink x the
+    # mean points per patch had seen it there. Left free, a patch makes a bright table top bright albedo,
+    # not light, and the fit lit the objects on it 0.4x too little (the suite's ceiling room)
+    n_patch = np.bincount(patch, minlength=npatch)[:, None].astype(np.float64)
+    kappa = st.albedo_shrink * n / npatch
     lum = L @ LUMINANCE_F64
     w = 1.0 / (lum + 0.05 * float(np.median(lum)) + 1e-9)
     area_k = np.array([float(tarea[t].sum()) for t in el_tris])
@@ -532,24 +659,19 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     active = active[cn[active] >= 0.02 * med]
     lam_k = np.maximum(cn, med) / max(med, 1e-12)
 
-    def fit_at(level: np.ndarray, iters: int = 4, active: np.ndarray = active, sparsity: float = st.sparsity
-               ) -> tuple[tuple, np.ndarray, np.ndarray]:
-        """Alternate emission (of the unknowns ``active``) and albedo with each channel's albedo level held
-        at ``level (3,)``; returns (emission, unknowns' radiance, irradiance at the points), the patch
-        albedo and each channel's objective (channels are independent)."""
+    def alternate(level: np.ndarray, Ekc: np.ndarray, cols: list, lbj: np.ndarray, lamj: np.ndarray,
+                  sparsity: float, iters: int, scale: float | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Alternate the emission of columns ``cols`` (per channel (n, J): irradiance at the points per unit
+        radiance, bounded below by ``lbj``) and the patch albedo, each channel's albedo level held at
+        ``level (3,)``; ``Ekc`` the irradiance nothing fitted here sends. Returns the emission (J, 3), the
+        patch albedo, the irradiance at the points and each channel's objective (channels are independent)."""
         rho = np.tile(level, (npatch, 1))
-        e = lb.copy()
+        ej = lbj.copy()
         l1 = np.zeros(3)
-        Ms = {lv: transport(lv) for lv in set(level.tolist())}
-        Mc = [Ms[lv] for lv in level.tolist()]
-        Ae = [A @ Mc[c] for c in range(3)]                     # irradiance per unit emission
-        Ekc = np.stack([Ek[:, c] + Ae[c] @ ((level[c] / np.pi) * reflect * Eu[:, c]) for c in range(3)], axis=1)
         for _ in range(iters):
-            ea, l1 = _solve_emission(rho[patch], Ekc, [x[:, active] for x in Ae], L, w, lb[active], lam_k[active],
-                                     sparsity)
-            e = lb.copy()
-            e[active] = ea
-            E = Ekc + np.stack([Ae[c] @ e[:, c] for c in range(3)], axis=1)
+            ej, l1 = _solve_emission(rho[patch], Ekc, cols, L, w, lbj, lamj, sparsity, scale)
+            E = Ekc + np.stack([cols[c] @ ej[:, c] for c in range(3)], axis=1)
             rho_new = np.empty((npatch, 3))
             for ch in range(3):
                 num = np.bincount(patch, weights=w * w * L[:, ch] * E[:, ch], minlength=npatch)
@@ -557,14 +679,106 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
                 rho_new[:, ch] = np.where(den > 0, np.pi * num / np.maximum(den, 1e-30), level[ch])
             # keep each channel's overall level: the search over levels sets it, the alternation the pattern
             rho_new = np.clip(rho_new, *ALBEDO_RANGE)
+            if kappa > 0:   # shrunk toward the room's level: a patch's brightness is light unless its points say not
+                lv0 = np.exp(np.mean(np.log(rho_new), axis=0))
+                rho_new = np.exp((n_patch * np.log(rho_new) + kappa * np.log(lv0)) / (n_patch + kappa))
             lvl = np.exp(np.mean(np.log(rho_new), axis=0))
             rho = np.clip(rho_new * (level / np.maximum(lvl, 1e-9)), *ALBEDO_RANGE)
-        E = Ekc + np.stack([Ae[c] @ e[:, c] for c in range(3)], axis=1)
+        E = Ekc + np.stack([cols[c] @ ej[:, c] for c in range(3)], axis=1)
         pred = rho[patch] / np.pi * E
         res = np.sum((w[:, None] * (pred - L)) ** 2, axis=0)
-        # the objective: data + few-bright-emitters prior
+        return ej, rho, E, res + 2 * l1          # the objective: data + few-bright-emitters prior
+
+    def design(level: np.ndarray) -> tuple[list, list, np.ndarray]:
+        """Per channel: transport of the unknown cells, irradiance at the points per unit emission of each
+        unknown, and the known light at the points (direct + reflected once more by the unseen cells)."""
+        Ms = {lv: transport(lv) for lv in set(level.tolist())}
+        Mc = [Ms[lv] for lv in level.tolist()]
+        Ae = [A @ Mc[c] for c in range(3)]
+        Ekc = np.stack([Ek[:, c] + Ae[c] @ ((level[c] / np.pi) * reflect * Eu[:, c]) for c in range(3)], axis=1)
+        return Mc, Ae, Ekc
+
+    def fit_at(level: np.ndarray, iters: int = 4, active: np.ndarray = active, sparsity: float = st.sparsity
+               ) -> tuple[tuple, np.ndarray, np.ndarray]:
+        """Emission of the unknowns ``active`` (the others stay at their lower bound) and albedo at each
+        channel's albedo level ``level (3,)``; returns (emission, unknowns' radiance, irradiance at the
+        points), the patch albedo and each channel's objective."""
+        Mc, Ae, Ekc = design(level)
+        rest = np.setdiff1d(np.arange(K), active)
+        Ekc = Ekc + np.stack([Ae[c][:, rest] @ lb[rest, c] for c in range(3)], axis=1)
+        ea, rho, E, obj = alternate(level, Ekc, [x[:, active] for x in Ae], lb[active], lam_k[active], sparsity,
+                                    iters)
+        e = lb.copy()
+        e[active] = ea
         Lu = np.stack([Mc[c] @ (e[:, c] + (level[c] / np.pi) * reflect * Eu[:, c]) for c in range(3)], axis=1)
-        return (e, Lu, E), rho, res + 2 * l1
+        return (e, Lu, E), rho, obj
+
+    lamp_q, lamp_n, lamp_e = np.zeros((0, 4, 3)), np.zeros((0, 3)), np.zeros((0, 3))
+
+    def refine(level: np.ndarray, sup: np.ndarray):
+        """Stage 3: the emitting box cells ``sup`` stand for lamps smaller than a cell, at the box or, under
+        the ceiling, hanging below it (a 0.4 m cell on the ceiling smears a 10 cm spot 1.2 m above a table
+        into a broad glow from 0.65 m higher). Candidates: each emitting cell cut into squares of
+        ``refine`` metres, at the cell and ``REFINE_DEPTHS`` below it where no photo saw free space; the
+        few-bright-emitters prior picks among them (as much as a whole cell per unit of light sent to the
+        points), the box cells then only reflect, and the chosen lamps are refitted without the prior.
+        Returns None when there is nothing to refine."""
+        cells = sup[sup < nbu]
+        cams = [(np.asarray(Kc, np.float64), np.asarray(T, np.float64), ph.shape[1], ph.shape[0])
+                for ph, Kc, T in frames]
+        quads, qn, _ = _lamp_candidates(isect, box_unknown[cells], BV, bnrm, upv, st.refine, h_low + LAMP_MIN_M,
+                                        cams, eps)
+        if len(quads) == 0:
+            return None
+        Ac = _quad_columns(isect, P, N, quads, qn, S, rng, eps)
+        cnc = np.linalg.norm(Ac, axis=0)
+        use = np.flatnonzero(cnc > 0)
+        quads, qn, Ac, cnc = quads[use], qn[use], Ac[:, use], cnc[use]
+        if len(quads) == 0:
+            return None
+        Gc = np.zeros((K, len(quads)))
+        Gc[:nbu] = _quad_columns(isect, bcen[box_unknown], bnrm[box_unknown], quads, qn, 4, rng, eps)
+        regions = sup[sup >= nbu]                      # clipped mesh regions stay as they are
+        rest = np.setdiff1d(np.arange(K), regions)     # every box cell only reflects (or emits its lower bound)
+        nr = regions.size
+
+        def problem(lv: np.ndarray):
+            Mc, Ae, Ekc = design(lv)
+            Ekc = Ekc + np.stack([Ae[c][:, rest] @ lb[rest, c] for c in range(3)], axis=1)
+            cols = [np.concatenate([Ae[c][:, regions], Ac + Ae[c] @ ((lv[c] / np.pi) * reflect[:, None] * Gc)],
+                                   axis=1) for c in range(3)]
+            return Mc, Ekc, cols
+
+        lbj = np.concatenate([lb[regions], np.zeros((len(quads), 3))])
+        lamj = np.concatenate([lam_k[regions], cnc / max(med, 1e-12)])
+        # the prior per unit of light sent to the points as in stage 1: its scale from stage 1's columns
+        scale0 = float(np.mean(np.sum((A[:, active] * (w * PRIOR_ALBEDO / np.pi)[:, None]) ** 2, axis=0)))
+        _, Ekc, cols = problem(level)
+        ej, _, _, _ = alternate(level, Ekc, cols, lbj, lamj, st.sparsity, 3, scale0)
+        pw = (ej[nr:] @ LUMINANCE_F64) * np.array([np.linalg.norm(np.cross(q[1] - q[0], q[3] - q[0])) for q in quads])
+        if pw.sum() <= 0:
+            return None
+        order = np.argsort(-pw)
+        cum = np.cumsum(pw[order]) / float(pw.sum())
+        keep = np.sort(order[:max(1, int(np.searchsorted(cum, st.support_share)) + 1)][:st.max_emitters])
+        sel = np.concatenate([np.arange(nr), nr + keep])
+        # with the lamps where they are, each channel's albedo level again at the residual's minimum
+        summary["stage2_level"] = [float(x) for x in level]
+        res3 = []
+        for lv in ALBEDO_LEVELS:
+            _, Ekc, cols = problem(np.full(3, lv))
+            res3.append(alternate(np.full(3, lv), Ekc, [x[:, sel] for x in cols], lbj[sel], lamj[sel], 0.0, 2)[3])
+        res3 = np.asarray(res3)
+        level = _curve_minimum(np.asarray(ALBEDO_LEVELS), res3)
+        Mc, Ekc, cols = problem(level)
+        ej, rho3, E3, obj3 = alternate(level, Ekc, [x[:, sel] for x in cols], lbj[sel], lamj[sel], 0.0, 5)
+        e3 = lb.copy()
+        e3[regions] = ej[:nr]
+        el = ej[nr:]
+        Lu3 = np.stack([Mc[c] @ (e3[:, c] + (level[c] / np.pi) * reflect * (Eu[:, c] + Gc[:, keep] @ el[:, c]))
+                        for c in range(3)], axis=1)
+        summary["refined_candidates"] = int(len(quads))
+        return e3, Lu3, E3, rho3, quads[keep], qn[keep], el, level, res3, obj3
 
     if K == 0 or active.size == 0:
         # nothing unknown the points can see: the mesh and observed holes are the light (scan lighting)
@@ -599,11 +813,17 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
                 res2 = np.array([fit_at(np.full(3, lv), iters=2, active=sup, sparsity=0.0)[2]
                                  for lv in ALBEDO_LEVELS])
                 best_level = np.asarray(ALBEDO_LEVELS)[np.argmin(res2, axis=0)]
-                (e, Lu, E), rho, _ = fit_at(best_level, iters=5, active=sup, sparsity=0.0)
+                (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0)
                 summary["stage1_level"] = [float(x) for x in level1]
                 summary["level_residuals_rgb"] = (res2 / res2.min(axis=0)).round(4).T.tolist()
                 summary["support_cells"] = int(sup.size)
                 res_curve = res2
+                if st.refine > 0:
+                    lamps = refine(np.asarray(best_level), sup)
+                    if lamps is not None:
+                        summary["stage2_residual"] = round(float(obj2 @ LUMINANCE_F64), 3)
+                        summary["stage3_residual"] = round(float(lamps[-1] @ LUMINANCE_F64), 3)
+                        e, Lu, E, rho, lamp_q, lamp_n, lamp_e, best_level, res_curve, _ = lamps
         best_level = [float(x) for x in best_level]
         res_curve = (res_curve @ LUMINANCE_F64).tolist()
         note = ""
@@ -612,22 +832,38 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     rad = vrad.copy()
     for k, tris in enumerate(el_tris):
         rad[np.unique(AF[tris])] = Lu[k]        # emitted + reflected
-    power = area_k * (e @ LUMINANCE_F64) if K else np.zeros(0)
+    lamp_area = np.array([np.linalg.norm(np.cross(q[1] - q[0], q[3] - q[0])) for q in lamp_q])
+    power = np.concatenate([area_k * (e @ LUMINANCE_F64) if K else np.zeros(0), lamp_area * (lamp_e @ LUMINANCE_F64)])
     total = float(power.sum())
-    light_tri = np.zeros(len(AF), bool)
-    light_tri[nbt:] = True                  # the known lights
+    lit = np.flatnonzero(power[K:] >= LIGHT_SHARE * total) if total > 0 else np.zeros(0, np.int64)
+    # the lamps (stage 3) join the room as small one-sided rectangles, wound to face where they emit
+    qf = []
+    for i, q in enumerate(lamp_q[lit]):
+        f = np.array([[0, 1, 2], [0, 2, 3]]) + 4 * i + len(AV)
+        if np.cross(q[1] - q[0], q[2] - q[0]) @ lamp_n[lit[i]] < 0:
+            f = f[:, ::-1]
+        qf.append(f)
+    AVo = np.concatenate([AV, lamp_q[lit].reshape(-1, 3).astype(np.float32)])
+    AFo = np.concatenate([AF, np.concatenate(qf).astype(np.int32) if qf else np.zeros((0, 3), np.int32)])
+    rad = np.concatenate([rad, np.repeat(lamp_e[lit], 4, axis=0)])
+    light_tri = np.zeros(len(AFo), bool)
+    light_tri[nbt:len(AF)] = True           # the known lights
+    light_tri[len(AF):] = True              # the lamps
     emitters = []
     if total > 0:
         order = np.argsort(-power)
         for k in order:
             if power[k] < LIGHT_SHARE * total:
                 break
-            light_tri[el_tris[k]] = True
-            c = p_[el_tris[k]].reshape(-1, 3).mean(axis=0)
-            emitters.append({"centre": [round(float(x), 3) for x in c], "area_m2": round(float(area_k[k]), 4),
-                             "radiance": [round(float(x), 4) for x in e[k]],
-                             "power_share": round(float(power[k] / total), 4),
-                             "kind": "box cell" if k < box_unknown.size else "clipped region"})
+            if k < K:
+                light_tri[el_tris[k]] = True
+                c, area, rd = p_[el_tris[k]].reshape(-1, 3).mean(axis=0), area_k[k], e[k]
+                kind = "box cell" if k < box_unknown.size else "clipped region"
+            else:
+                c, area, rd, kind = lamp_q[k - K].mean(axis=0), lamp_area[k - K], lamp_e[k - K], "lamp"
+            emitters.append({"centre": [round(float(x), 3) for x in c], "area_m2": round(float(area), 4),
+                             "radiance": [round(float(x), 4) for x in rd],
+                             "power_share": round(float(power[k] / total), 4), "kind": kind})
     pred = rho[patch] / np.pi * E
     rel = np.abs(pred - L).sum(axis=1) / np.maximum(L.sum(axis=1), 1e-9)
     summary.update(fitted=note == "", note=note, points=int(n), albedo_level=best_level,
@@ -638,5 +874,5 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
                    seconds=round(time.process_time() - t0, 2))
     log.info("light fit of %s: %d points, %d unknowns, albedo level %s, %d emitters sampled, residual %.3f, %.1f s",
              name, n, K, best_level, len(emitters), summary["residual_median"], summary["seconds"])
-    return RoomLights(vertices=AV, faces=AF, radiance=rad.astype(np.float32), light_tri=light_tri,
+    return RoomLights(vertices=AVo, faces=AFo, radiance=rad.astype(np.float32), light_tri=light_tri,
                       num_mesh_vertices=nv, num_mesh_tris=nt, summary=summary)

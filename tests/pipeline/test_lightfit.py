@@ -77,13 +77,20 @@ def test_unseen_ceiling_gets_the_light():
         zz = np.where(h.hit, (o + h.t[:, None] * d)[:, 2], 2.5)
         val = np.clip(np.round(255 * ((0.05 + 0.3 * zz / 2.5) ** (1 / 2.2))), 0, 255).astype(np.uint8)
         fr.append((np.repeat(val.reshape(H, W, 1), 3, axis=2), Kf, T))
+    # the cells alone (refine = 0): the light is on the box's top
     rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(1),
-                         settings=FitSettings(points=600, stride=2, cell=0.5))
+                         settings=FitSettings(points=600, stride=2, cell=0.5, refine=0.0))
     check_finite(rl)
     assert rl.summary["fitted"], rl.summary["note"]
     assert rl.summary["emitters"], "no emitter found"
     top = [e for e in rl.summary["emitters"] if e["centre"][2] > 2.4]
     assert sum(e["power_share"] for e in top) > 0.6, rl.summary["emitters"][:5]
+    # refined into lamps, which may hang under the ceiling: still above the cameras (1.3 m), none low
+    rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(1),
+                         settings=FitSettings(points=600, stride=2, cell=0.5))
+    check_finite(rl)
+    em = rl.summary["emitters"]
+    assert em and sum(e["power_share"] for e in em if e["centre"][2] > 1.6) > 0.9, em[:5]
 
 
 @pytest.mark.parametrize("case", ["dark", "clipped", "no photos", "one frame", "no colours"])
@@ -174,3 +181,105 @@ def test_room_lit_only_through_a_hole():
     near = sum(e["power_share"] for e in em if e["centre"][0] > 1.9 and abs(e["centre"][1]) < 1.0
                and 0.6 < e["centre"][2] < 2.4)
     assert near > 0.5, em[:5]
+
+
+def hanging_lamp_photos(v, f, lamp, radiance, albedo=0.5):
+    """Photos (and vertex colours) of room ``v, f`` lit only by a small square lamp (centre ``lamp``,
+    10 cm, facing down, ``radiance``), by the direct-light formula (no bounce): an independent stand-in
+    for a renderer, which the fit's own transport is not."""
+    from pipeline.camera import Camera
+    from pipeline.trace.intersect import EmbreeIntersector
+
+    isect = EmbreeIntersector(np.asarray(v, np.float32), np.asarray(f, np.int32))
+    p_ = np.asarray(v)[np.asarray(f)]
+    tn = np.cross(p_[:, 1] - p_[:, 0], p_[:, 2] - p_[:, 0])
+    tn /= np.linalg.norm(tn, axis=1, keepdims=True)
+    lamp = np.asarray(lamp, np.float64)
+
+    def radiance_at(x, n):
+        d = lamp - x
+        dist = np.linalg.norm(d, axis=1)
+        wl = d / dist[:, None]
+        cos_i = np.clip(np.einsum("ij,ij->i", wl, n), 0, None)
+        cos_l = np.clip(wl[:, 2], 0, None)          # the lamp faces down: it sees points below it
+        occ = isect.occluded((x + 1e-3 * n).astype(np.float32), wl.astype(np.float32),
+                             (dist - 2e-3).astype(np.float32))
+        E = radiance * 0.01 * cos_i * cos_l / dist ** 2 * ~occ
+        return albedo / np.pi * E
+
+    def encode(lin):
+        return np.clip(np.round(255 * np.clip(lin, 0, 1) ** (1 / 2.2)), 0, 255).astype(np.uint8)
+
+    vn = np.zeros_like(np.asarray(v, np.float64))
+    np.add.at(vn, np.asarray(f).ravel(), np.repeat(tn, 3, axis=0))
+    vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
+    colors = np.repeat(encode(radiance_at(np.asarray(v, np.float64), vn))[:, None], 3, axis=1)
+    out = []
+    for _, Kf, T in frames(6, 0):
+        cam = Camera(K=Kf, T_c2w=T, width=W, height=H)
+        o, d = cam.rays(np.arange(W * H), np.full((W * H, 2), 0.5, np.float32))
+        h = isect.intersect(o, d)
+        lin = np.zeros(W * H)
+        k = np.flatnonzero(h.hit)
+        n = tn[h.prim[k]] * -np.sign(np.einsum("ij,ij->i", tn[h.prim[k]], d[k]))[:, None]
+        lin[k] = radiance_at(o[k] + h.t[k, None] * d[k], n)
+        out.append((np.repeat(encode(lin).reshape(H, W, 1), 3, axis=2), Kf, T))
+    return colors, out
+
+
+def test_small_hanging_lamp_is_found_where_it_hangs():
+    """A 10 cm lamp hanging 0.8 m under the open ceiling, out of every photo's view: the third stage puts
+    the light below the ceiling, over the lamp; with the cells alone (refine = 0) it stays on the box."""
+    v, f, _ = open_room()
+    lamp = (0.3, -0.2, 1.7)
+    colors, fr = hanging_lamp_photos(v, f, lamp, 400.0)
+
+    def centroid(rl):
+        em = rl.summary["emitters"]
+        w = np.array([e["power_share"] for e in em])
+        return (w[:, None] * np.array([e["centre"] for e in em])).sum(axis=0) / w.sum(), em
+
+    rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(3),
+                         settings=FitSettings(points=800, stride=2, cell=0.4))
+    check_finite(rl)
+    assert rl.summary["fitted"], rl.summary["note"]
+    c, em = centroid(rl)
+    assert any(e["kind"] == "lamp" for e in em), em[:5]
+    assert c[2] < 2.2 and np.linalg.norm(c[:2] - lamp[:2]) < 0.3, (c, em[:5])
+    # the lamps are in the room: their triangles are sampled lights facing down
+    extra = np.arange(len(rl.faces)) >= rl.num_mesh_tris
+    lt = rl.light_tri & extra
+    p = rl.vertices[rl.faces[lt]].astype(np.float64)
+    assert lt.any() and np.all(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])[:, 2] <= 1e-9)
+    cells = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(3),
+                            settings=FitSettings(points=800, stride=2, cell=0.4, refine=0.0))
+    assert centroid(cells)[0][2] > 2.4
+
+
+def test_lamp_candidates_stay_out_of_sight_and_in_free_space():
+    """A ceiling cell gives hanging candidates, a wall cell only its own squares; a candidate a photo
+    would have seen, or one with a shelf between it and its cell, is dropped."""
+    from pipeline.trace.intersect import EmbreeIntersector
+    from pipeline.trace.lightfit import REFINE_DEPTHS, _lamp_candidates
+
+    v, f = box_room((-2, -2, 0), (2, 2, 2.5), n=4)
+    f = f[v[f].mean(axis=1)[:, 2] < 2.49]                     # no ceiling: the box's top is unseen
+    shelf_v = np.array([[-2, -2, 2.0], [2, -2, 2.0], [2, -1.0, 2.0], [-2, -1.0, 2.0]], np.float64)
+    V = np.concatenate([v, shelf_v])
+    F = np.concatenate([f, np.array([[0, 1, 2], [0, 2, 3]]) + len(v)])
+    isect = EmbreeIntersector(V.astype(np.float32), F.astype(np.int32))
+    BV, BF, cen, nrm = closing_box(V, UP, 0.4, margin=0.02)
+    ceil = np.flatnonzero((nrm[:, 2] < -0.5) & (np.abs(cen[:, 0]) < 0.2) & (np.abs(cen[:, 1] - 1.0) < 0.2))[:1]
+    over_shelf = np.flatnonzero((nrm[:, 2] < -0.5) & (np.abs(cen[:, 0]) < 0.2) & (np.abs(cen[:, 1] + 1.5) < 0.2))[:1]
+    wall = np.flatnonzero(nrm[:, 0] > 0.5)[:1]
+    q, n, parent = _lamp_candidates(isect, np.concatenate([ceil, over_shelf, wall]), BV, nrm, UP, 0.1, 1.5, [], 1e-3)
+    per = {c: int((parent == c).sum()) for c in (ceil[0], over_shelf[0], wall[0])}
+    assert per[ceil[0]] == 16 * len(REFINE_DEPTHS)             # 4 x 4 squares at every depth
+    below = q[parent == over_shelf[0]].mean(axis=1)[:, 2] < 2.0
+    assert per[over_shelf[0]] == 16 * 3 and not below.any()    # none under the shelf (2.0 m): 1.77 m is cut
+    assert per[wall[0]] == 16
+    assert np.allclose(n[parent == ceil[0]], [0, 0, -1])
+    # a camera under the ceiling cell looking up sees where the lamps would hang
+    cam = (K, look_at((0.0, 1.0, 0.5), (0.0, 1.0001, 2.5)), W, H)
+    q2, _, p2 = _lamp_candidates(isect, ceil, BV, nrm, UP, 0.1, 1.5, [cam], 1e-3)
+    assert (p2 == ceil[0]).sum() < per[ceil[0]] and (p2 == ceil[0]).sum() >= 16
