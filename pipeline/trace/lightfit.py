@@ -625,12 +625,23 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         np.add.at(G, (ku[hit[un]], j[un]), np.pi / Mu)
         kn = hit[~un & (tri < nbt)]
         np.add.at(Eu, ku[kn], np.pi / Mu * _at(vrad, AF, hu.prim[kn], hu.u[kn], hu.v[kn]))
+        if kq:   # and what the known lights send them (sampled by area, as the trace stage's lights are)
+            kqa = np.asarray(kq)
+            kn_ = np.cross(kqa[:, 1] - kqa[:, 0], kqa[:, 2] - kqa[:, 0])
+            kn_ /= np.linalg.norm(kn_, axis=1, keepdims=True)
+            Eu[:nbu] += _quad_columns(isect, bcen[box_unknown], bnrm[box_unknown], kqa, kn_, 16, rng, eps) @ \
+                np.asarray([r for _, r in known_lights], np.float64).reshape(-1, 3)
     reflect = np.zeros(K)
     reflect[:nbu] = 1.0                      # clipped mesh regions are lamps: they do not reflect here
 
+    def rho_u(level_c: float) -> np.ndarray:
+        """(K,) albedo over pi of the unknowns at a room albedo level of ``level_c`` (unseen cells reflect
+        like the room; clipped regions do not)."""
+        return level_c * reflect / np.pi
+
     def transport(level_c: float) -> np.ndarray:
         """(I - rho_u / pi G)^-1 for an unknown cell albedo of ``level_c``."""
-        return np.linalg.inv(np.eye(K) - (level_c / np.pi) * reflect[:, None] * G)
+        return np.linalg.inv(np.eye(K) - rho_u(level_c)[:, None] * G)
 
     # albedo patches: cells of albedo_cell metres x the dominant normal axis
     keyp = np.concatenate([np.floor(P / st.albedo_cell).astype(np.int64),
@@ -695,7 +706,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         Ms = {lv: transport(lv) for lv in set(level.tolist())}
         Mc = [Ms[lv] for lv in level.tolist()]
         Ae = [A @ Mc[c] for c in range(3)]
-        Ekc = np.stack([Ek[:, c] + Ae[c] @ ((level[c] / np.pi) * reflect * Eu[:, c]) for c in range(3)], axis=1)
+        Ekc = np.stack([Ek[:, c] + Ae[c] @ (rho_u(level[c]) * Eu[:, c]) for c in range(3)], axis=1)
         return Mc, Ae, Ekc
 
     def fit_at(level: np.ndarray, iters: int = 4, active: np.ndarray = active, sparsity: float = st.sparsity
@@ -710,7 +721,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
                                     iters)
         e = lb.copy()
         e[active] = ea
-        Lu = np.stack([Mc[c] @ (e[:, c] + (level[c] / np.pi) * reflect * Eu[:, c]) for c in range(3)], axis=1)
+        Lu = np.stack([Mc[c] @ (e[:, c] + rho_u(level[c]) * Eu[:, c]) for c in range(3)], axis=1)
         return (e, Lu, E), rho, obj
 
     lamp_q, lamp_n, lamp_e = np.zeros((0, 4, 3)), np.zeros((0, 3)), np.zeros((0, 3))
@@ -745,7 +756,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         def problem(lv: np.ndarray):
             Mc, Ae, Ekc = design(lv)
             Ekc = Ekc + np.stack([Ae[c][:, rest] @ lb[rest, c] for c in range(3)], axis=1)
-            cols = [np.concatenate([Ae[c][:, regions], Ac + Ae[c] @ ((lv[c] / np.pi) * reflect[:, None] * Gc)],
+            cols = [np.concatenate([Ae[c][:, regions], Ac + Ae[c] @ (rho_u(lv[c])[:, None] * Gc)],
                                    axis=1) for c in range(3)]
             return Mc, Ekc, cols
 
@@ -775,7 +786,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         e3 = lb.copy()
         e3[regions] = ej[:nr]
         el = ej[nr:]
-        Lu3 = np.stack([Mc[c] @ (e3[:, c] + (level[c] / np.pi) * reflect * (Eu[:, c] + Gc[:, keep] @ el[:, c]))
+        Lu3 = np.stack([Mc[c] @ (e3[:, c] + rho_u(level[c]) * (Eu[:, c] + Gc[:, keep] @ el[:, c]))
                         for c in range(3)], axis=1)
         summary["refined_candidates"] = int(len(quads))
         return e3, Lu3, E3, rho3, quads[keep], qn[keep], el, level, res3, obj3
