@@ -83,7 +83,7 @@ def _direct_light(scene: TraceScene, room_isect: Intersector, obj_isect: Interse
     """Light (luminance, as radiance from a white surface) that the area lights send to room points
     ``p`` without objects, and the part of it the objects block: ``(E0_direct, blocked)``, each (n,).
 
-    ``per[i]`` points on the lights per room point (the caller passes a quarter of its hemisphere rays:
+    ``per[i]`` points on the lights per room point (the caller gives them a quarter of its ray budget:
     stratified and smoothed like the rest, few suffice), stratified over the light selection; a shadow ray
     first against the room (does the light reach the point at all?), then against the objects. This
     gives the objects' shadow its direction and its edge (hard under a small light, soft under a large
@@ -179,15 +179,19 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
         return out.reshape(H, W)
     # E0, the light arriving without objects: cosine-weighted hemisphere rays against the room alone
     per = np.where(contact.ravel()[pix], 2 * samples, samples)              # rays per point
-    pr = np.repeat(np.arange(n), per)
+    # the area lights, sampled explicitly, take a quarter of the budget from the hemisphere rays, which
+    # then see only the room's indirect light (smooth: fewer rays suffice)
+    lper = np.maximum(2, per // 4) if scene.area_lights.count else np.zeros_like(per)
+    hper = np.maximum(1, per - lper)
+    pr = np.repeat(np.arange(n), hper)
     uu = rng.random((2, pr.size))
     dl, _ = cosine_hemisphere(uu[0], uu[1])
     dw = to_world(dl, ng[pr].astype(np.float64)).astype(np.float32)
     L0 = _room_radiance(scene, room_isect, offset_origins(p[pr], ng[pr], dw, eps), dw)[0] @ LUMINANCE_F64
-    E0 = np.bincount(pr, weights=L0, minlength=n) / per
+    E0 = np.bincount(pr, weights=L0, minlength=n) / hper
     if scene.area_lights.count:   # the lights sampled explicitly (left out of the rays above)
         Ed, blocked = _direct_light(scene, room_isect, obj_isect, p.astype(np.float64), ng.astype(np.float64),
-                                    np.maximum(2, per // 4), rng, eps)
+                                    lper, rng, eps)
         E0 = E0 + Ed
         E1 = E0 - blocked
     else:
