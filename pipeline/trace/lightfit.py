@@ -275,6 +275,12 @@ def _curve_minimum(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return out
 
 
+def _quad_area(quads: np.ndarray) -> np.ndarray:
+    """(C,) areas of parallelograms ``quads (C, 4, 3)`` (corners in order)."""
+    q = np.asarray(quads, np.float64).reshape(-1, 4, 3)
+    return np.linalg.norm(np.cross(q[:, 1] - q[:, 0], q[:, 3] - q[:, 0]), axis=1)
+
+
 def _quad_columns(isect, P: np.ndarray, N: np.ndarray, quads: np.ndarray, normals: np.ndarray, samples: int,
                   rng: np.random.Generator, eps: float) -> np.ndarray:
     """(n, C) irradiance at points ``P`` (normals ``N``) per unit radiance of each one-sided rectangle
@@ -289,7 +295,7 @@ def _quad_columns(isect, P: np.ndarray, N: np.ndarray, quads: np.ndarray, normal
     for c in range(C):
         q = quads[c]
         a, b = q[1] - q[0], q[3] - q[0]
-        area = float(np.linalg.norm(np.cross(a, b)))
+        area = float(_quad_area(q)[0])
         r = rng.random((2, n * samples))
         dv = q[0] + r[0][:, None] * a + r[1][:, None] * b - Pi
         dist = np.linalg.norm(dv, axis=1)
@@ -312,7 +318,7 @@ def _lamp_candidates(isect, cells: np.ndarray, BV: np.ndarray, bnrm: np.ndarray,
                      h_min: float, cams: list, eps: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Small lamps an emitting box cell may stand for: the cell cut into squares of about ``size`` metres, and
     for a ceiling cell the same squares hung ``REFINE_DEPTHS`` below it, in free space no photo saw
-    (``cams``: ``(K, T_c2w, width, height)``) and at least ``h_min`` high. Returns corners (C, 4, 3), normals
+    (``cams``: the photos' :class:`~pipeline.camera.Camera`) and at least ``h_min`` high. Returns corners (C, 4, 3), normals
     (C, 3) and the cell each came from (C,)."""
     quads, nrm, parent, depth = [], [], [], []
     for c in cells:
@@ -341,19 +347,16 @@ def _lamp_candidates(isect, cells: np.ndarray, BV: np.ndarray, bnrm: np.ndarray,
         dn = -nrm[idx].astype(np.float32)
         blocked = isect.occluded((cen[idx] + eps * dn).astype(np.float32), dn, (depth[idx] - 2 * eps).astype(np.float32))
         keep[idx[blocked]] = False
-        for K, T, w, h in cams:
+        for cam in cams:
             idx = np.flatnonzero(hung & keep)
             if idx.size == 0:
                 break
-            R, t = np.asarray(T)[:3, :3], np.asarray(T)[:3, 3]
-            pc = (cen[idx] - t) @ R
-            z = pc[:, 2]
-            front = z > 1e-6
-            uv = (pc[:, :2] / np.where(front, z, 1.0)[:, None]) * [K[0][0], K[1][1]] + [K[0][2], K[1][2]]
-            inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+            uv, z = cam.project(cen[idx])
+            inside = (z > 1e-6) & np.all((uv >= 0) & (uv < [cam.width, cam.height]), axis=1)
             j = idx[inside]
             if j.size == 0:
                 continue
+            t = np.asarray(cam.center, np.float64)
             dv = cen[j] - t
             dist = np.linalg.norm(dv, axis=1)
             seen = ~isect.occluded(np.repeat(t[None], j.size, axis=0).astype(np.float32),
@@ -704,8 +707,9 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         """Per channel: transport of the unknown cells, irradiance at the points per unit emission of each
         unknown, and the known light at the points (direct + reflected once more by the unseen cells)."""
         Ms = {lv: transport(lv) for lv in set(level.tolist())}
+        AMs = {lv: A @ M for lv, M in Ms.items()}
         Mc = [Ms[lv] for lv in level.tolist()]
-        Ae = [A @ Mc[c] for c in range(3)]
+        Ae = [AMs[lv] for lv in level.tolist()]
         Ekc = np.stack([Ek[:, c] + Ae[c] @ (rho_u(level[c]) * Eu[:, c]) for c in range(3)], axis=1)
         return Mc, Ae, Ekc
 
@@ -735,8 +739,8 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         points), the box cells then only reflect, and the chosen lamps are refitted without the prior.
         Returns None when there is nothing to refine."""
         cells = sup[sup < nbu]
-        cams = [(np.asarray(Kc, np.float64), np.asarray(T, np.float64), ph.shape[1], ph.shape[0])
-                for ph, Kc, T in frames]
+        cams = [Camera(K=np.asarray(Kc, np.float64), T_c2w=np.asarray(T, np.float64), width=ph.shape[1],
+                       height=ph.shape[0]) for ph, Kc, T in frames]
         quads, qn, _ = _lamp_candidates(isect, box_unknown[cells], BV, bnrm, upv, st.refine, h_low + LAMP_MIN_M,
                                         cams, eps)
         if len(quads) == 0:
@@ -753,20 +757,21 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         rest = np.setdiff1d(np.arange(K), regions)     # every box cell only reflects (or emits its lower bound)
         nr = regions.size
 
-        def problem(lv: np.ndarray):
+        def problem(lv: np.ndarray, cand: np.ndarray):
+            """Transport, known light and columns (the regions', then candidates ``cand``') at levels ``lv``."""
             Mc, Ae, Ekc = design(lv)
             Ekc = Ekc + np.stack([Ae[c][:, rest] @ lb[rest, c] for c in range(3)], axis=1)
-            cols = [np.concatenate([Ae[c][:, regions], Ac + Ae[c] @ (rho_u(lv[c])[:, None] * Gc)],
-                                   axis=1) for c in range(3)]
+            cols = [np.concatenate([Ae[c][:, regions], Ac[:, cand] + (Ae[c] * rho_u(lv[c])) @ Gc[:, cand]], axis=1)
+                    for c in range(3)]
             return Mc, Ekc, cols
 
         lbj = np.concatenate([lb[regions], np.zeros((len(quads), 3))])
         lamj = np.concatenate([lam_k[regions], cnc / max(med, 1e-12)])
         # the prior per unit of light sent to the points as in stage 1: its scale from stage 1's columns
         scale0 = float(np.mean(np.sum((A[:, active] * (w * PRIOR_ALBEDO / np.pi)[:, None]) ** 2, axis=0)))
-        _, Ekc, cols = problem(level)
+        _, Ekc, cols = problem(level, np.arange(len(quads)))
         ej, _, _, _ = alternate(level, Ekc, cols, lbj, lamj, st.sparsity, 3, scale0)
-        pw = (ej[nr:] @ LUMINANCE_F64) * np.array([np.linalg.norm(np.cross(q[1] - q[0], q[3] - q[0])) for q in quads])
+        pw = (ej[nr:] @ LUMINANCE_F64) * _quad_area(quads)
         if pw.sum() <= 0:
             return None
         order = np.argsort(-pw)
@@ -777,12 +782,12 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         summary["stage2_level"] = [float(x) for x in level]
         res3 = []
         for lv in ALBEDO_LEVELS:
-            _, Ekc, cols = problem(np.full(3, lv))
-            res3.append(alternate(np.full(3, lv), Ekc, [x[:, sel] for x in cols], lbj[sel], lamj[sel], 0.0, 2)[3])
+            _, Ekc, cols = problem(np.full(3, lv), keep)
+            res3.append(alternate(np.full(3, lv), Ekc, cols, lbj[sel], lamj[sel], 0.0, 2)[3])
         res3 = np.asarray(res3)
         level = _curve_minimum(np.asarray(ALBEDO_LEVELS), res3)
-        Mc, Ekc, cols = problem(level)
-        ej, rho3, E3, obj3 = alternate(level, Ekc, [x[:, sel] for x in cols], lbj[sel], lamj[sel], 0.0, 5)
+        Mc, Ekc, cols = problem(level, keep)
+        ej, rho3, E3, obj3 = alternate(level, Ekc, cols, lbj[sel], lamj[sel], 0.0, 5)
         e3 = lb.copy()
         e3[regions] = ej[:nr]
         el = ej[nr:]
@@ -843,7 +848,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     rad = vrad.copy()
     for k, tris in enumerate(el_tris):
         rad[np.unique(AF[tris])] = Lu[k]        # emitted + reflected
-    lamp_area = np.array([np.linalg.norm(np.cross(q[1] - q[0], q[3] - q[0])) for q in lamp_q])
+    lamp_area = _quad_area(lamp_q)
     power = np.concatenate([area_k * (e @ LUMINANCE_F64) if K else np.zeros(0), lamp_area * (lamp_e @ LUMINANCE_F64)])
     total = float(power.sum())
     lit = np.flatnonzero(power[K:] >= LIGHT_SHARE * total) if total > 0 else np.zeros(0, np.int64)

@@ -280,7 +280,9 @@ def test_lamp_candidates_stay_out_of_sight_and_in_free_space():
     assert per[wall[0]] == 16
     assert np.allclose(n[parent == ceil[0]], [0, 0, -1])
     # a camera under the ceiling cell looking up sees where the lamps would hang
-    cam = (K, look_at((0.0, 1.0, 0.5), (0.0, 1.0001, 2.5)), W, H)
+    from pipeline.camera import Camera
+
+    cam = Camera(K=K, T_c2w=look_at((0.0, 1.0, 0.5), (0.0, 1.0001, 2.5)), width=W, height=H)
     q2, _, p2 = _lamp_candidates(isect, ceil, BV, nrm, UP, 0.1, 1.5, [cam], 1e-3)
     assert (p2 == ceil[0]).sum() < per[ceil[0]] and (p2 == ceil[0]).sum() >= 16
 
