@@ -281,13 +281,36 @@ def _quad_area(quads: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.cross(q[:, 1] - q[:, 0], q[:, 3] - q[:, 0]), axis=1)
 
 
+def _sampled_irradiance(isect, Pi: np.ndarray, Ni: np.ndarray, lp: np.ndarray, nl: np.ndarray, area: float,
+                        eps: float, two_sided: bool = False) -> np.ndarray:
+    """(R,) one-sample estimates of the irradiance at receivers ``Pi`` (normals ``Ni``) per unit radiance
+    of a light of total ``area``, from points ``lp`` drawn uniformly on it (normals ``nl``), with visibility
+    through ``isect``; a one-sided light emits along ``nl``."""
+    from pipeline.trace.intersect import offset_origins
+
+    dv = lp - Pi
+    dist = np.linalg.norm(dv, axis=1)
+    wl = dv / np.maximum(dist, 1e-12)[:, None]
+    cos_i = np.einsum("ij,ij->i", wl, Ni)
+    cos_l = -np.einsum("ij,ij->i", wl, nl)
+    if two_sided:
+        cos_l = np.abs(cos_l)
+    g = np.zeros(len(Pi))
+    ok = np.flatnonzero((cos_i > 0) & (cos_l > 0) & (dist > 4 * eps))
+    if ok.size == 0:
+        return g
+    o2 = offset_origins(Pi[ok].astype(np.float32), Ni[ok].astype(np.float32), wl[ok].astype(np.float32), eps)
+    occ = isect.occluded(o2, wl[ok].astype(np.float32), (dist[ok] - 3 * eps).astype(np.float32))
+    vis = ok[~occ]
+    g[vis] = cos_i[vis] * cos_l[vis] / dist[vis] ** 2 * area
+    return g
+
+
 def _quad_columns(isect, P: np.ndarray, N: np.ndarray, quads: np.ndarray, normals: np.ndarray, samples: int,
                   rng: np.random.Generator, eps: float) -> np.ndarray:
     """(n, C) irradiance at points ``P`` (normals ``N``) per unit radiance of each one-sided rectangle
     ``quads (C, 4, 3)`` emitting along ``normals (C, 3)``: ``samples`` area samples per pair, with visibility
     through ``isect``."""
-    from pipeline.trace.intersect import offset_origins
-
     n, C = len(P), len(quads)
     out = np.zeros((n, C))
     Pi = np.repeat(P, samples, axis=0)
@@ -297,19 +320,8 @@ def _quad_columns(isect, P: np.ndarray, N: np.ndarray, quads: np.ndarray, normal
         a, b = q[1] - q[0], q[3] - q[0]
         area = float(_quad_area(q)[0])
         r = rng.random((2, n * samples))
-        dv = q[0] + r[0][:, None] * a + r[1][:, None] * b - Pi
-        dist = np.linalg.norm(dv, axis=1)
-        wl = dv / np.maximum(dist, 1e-12)[:, None]
-        cos_i = np.einsum("ij,ij->i", wl, Ni)
-        cos_l = -(wl @ normals[c])
-        ok = np.flatnonzero((cos_i > 0) & (cos_l > 0) & (dist > 4 * eps))
-        if ok.size == 0:
-            continue
-        o2 = offset_origins(Pi[ok].astype(np.float32), Ni[ok].astype(np.float32), wl[ok].astype(np.float32), eps)
-        occ = isect.occluded(o2, wl[ok].astype(np.float32), (dist[ok] - 3 * eps).astype(np.float32))
-        g = np.zeros(n * samples)
-        vis = ok[~occ]
-        g[vis] = cos_i[vis] * cos_l[vis] / dist[vis] ** 2 * area
+        lp = q[0] + r[0][:, None] * a + r[1][:, None] * b
+        g = _sampled_irradiance(isect, Pi, Ni, lp, np.broadcast_to(normals[c], lp.shape), area, eps)
         out[:, c] = g.reshape(n, samples).mean(axis=1)
     return out
 
@@ -388,7 +400,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     RoomLights; its ``summary["note"]`` says in one line what was assumed when the fit fell back
     """
     from pipeline.camera import Camera
-    from pipeline.trace.intersect import EmbreeIntersector, offset_origins
+    from pipeline.trace.intersect import EmbreeIntersector
 
     t0 = time.process_time()
     st = settings
@@ -576,6 +588,8 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     known_tris = [np.array([nbt + i, nbt + len(kq) + i]) for i in range(len(kq))]
     A = np.zeros((n, K + len(kq)))
     S = st.emitter_samples
+    Pi = np.repeat(P, S, axis=0)
+    Ni = np.repeat(N, S, axis=0)
     for k, tris in enumerate(el_tris + known_tris):
         ar = tarea[tris]
         tot = float(ar.sum())
@@ -586,24 +600,8 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         s1 = np.sqrt(r1)
         q = p_[pick]
         lp = (1 - s1)[:, None] * q[:, 0] + (s1 * (1 - r2))[:, None] * q[:, 1] + (s1 * r2)[:, None] * q[:, 2]
-        Pi = np.repeat(P, S, axis=0)
-        Ni = np.repeat(N, S, axis=0)
-        dv = lp - Pi
-        dist = np.linalg.norm(dv, axis=1)
-        wl = dv / np.maximum(dist, 1e-12)[:, None]
-        cos_i = np.einsum("ij,ij->i", wl, Ni)
-        nl = tn[pick]
-        cos_l = -np.einsum("ij,ij->i", wl, nl)
-        if k >= box_unknown.size:
-            cos_l = np.abs(cos_l)          # a clipped mesh region (or a known light) lights both ways
-        ok = np.flatnonzero((cos_i > 0) & (cos_l > 0) & (dist > 4 * eps))
-        if ok.size == 0:
-            continue
-        o2 = offset_origins(Pi[ok].astype(np.float32), Ni[ok].astype(np.float32), wl[ok].astype(np.float32), eps)
-        occ = isect.occluded(o2, wl[ok].astype(np.float32), (dist[ok] - 3 * eps).astype(np.float32))
-        g = np.zeros(n * S)
-        vis = ok[~occ]
-        g[vis] = cos_i[vis] * cos_l[vis] / dist[vis] ** 2 * tot
+        # a clipped mesh region (or a known light) lights both ways
+        g = _sampled_irradiance(isect, Pi, Ni, lp, tn[pick], tot, eps, two_sided=k >= box_unknown.size)
         A[:, k] = g.reshape(n, S).mean(axis=1)
     if kq:   # the known lights' irradiance joins the known part
         Ek = Ek + A[:, K:] @ np.asarray([r for _, r in known_lights], np.float64).reshape(-1, 3)
