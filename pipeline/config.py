@@ -262,8 +262,10 @@ class TraceConfig:
                                       "in mean points per patch (0 = each patch free: a bright table top becomes bright "
                                       "albedo, not light; tuned on half of the Mitsuba light suite's rooms)", min=0.0)
     lights_file: str = option("", "fit lighting: JSON file of emitters you know, [{\"corners\": 4 x [x, y, z] world "
-                              "metres, \"radiance\": [r, g, b] linear, 1 = sensor white}]; they light the room as "
-                              "given and the fit explains only the rest")
+                              "metres, \"radiance\": [r, g, b] linear, 1 = sensor white}]; each emits on the side "
+                              "its corners turn counter-clockwise around (normal (c1 - c0) x (c2 - c0)); they light the "
+                              "room as given and the fit explains only the rest; checked when the config loads",
+                              path="file")
     frames_per_item: int = option(8, "frames of one drop traced per work item: each item builds the drop's "
                                   "scene once; fewer frames per item = finer load balance over workers", min=1)
 
@@ -433,7 +435,16 @@ def build_config(raw: dict, *, base_dir: str | Path = ".") -> Config:
         raise ConfigError(f"unknown table [{unknown[0]}]; valid tables: {', '.join(TABLES)}")
     base = Path(base_dir).resolve()
     raw = _with_preset(raw)
-    return Config(**{name: _build_table(name, TABLES[name], raw.get(name, {}), base) for name in TABLES})
+    cfg = Config(**{name: _build_table(name, TABLES[name], raw.get(name, {}), base) for name in TABLES})
+    if cfg.trace.lights_file:   # read now, not when trace starts after the stages before it have run
+        from pipeline.errors import InputError
+        from pipeline.trace.lightfit import read_lights_file
+
+        try:
+            read_lights_file(cfg.trace.lights_file)
+        except InputError as e:
+            raise ConfigError(f"trace.lights_file: {e}") from None
+    return cfg
 
 
 def _with_preset(raw: dict) -> dict:

@@ -377,6 +377,43 @@ def _lamp_candidates(isect, cells: np.ndarray, BV: np.ndarray, bnrm: np.ndarray,
     return quads[keep], nrm[keep], parent[keep]
 
 
+def read_lights_file(file: str, radiance_scale: float = 1.0) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The emitters of ``trace.lights_file``: ``[(corners (4, 3), radiance (3,) x radiance_scale)]``.
+
+    Raises InputError naming the file and the entry for anything that is not a list of
+    ``{"corners": 4 x 3 numbers, "radiance": 3 numbers >= 0}`` with a non-degenerate rectangle.
+    """
+    import json
+    from pathlib import Path
+
+    from pipeline.errors import InputError
+
+    p = Path(file)
+    try:
+        doc = json.loads(p.read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(f"{p}: cannot read trace.lights_file ({e}); give a JSON list of "
+                         f"{{\"corners\": [[x, y, z] x 4], \"radiance\": [r, g, b]}}") from None
+    if not isinstance(doc, list):
+        raise InputError(f"{p}: trace.lights_file must be a JSON list of emitters, got {type(doc).__name__}")
+    out = []
+    for k, e in enumerate(doc):
+        try:
+            c = np.asarray(e["corners"], np.float64)
+            r = np.asarray(e["radiance"], np.float64)
+        except (TypeError, KeyError, ValueError):
+            raise InputError(f"{p}: emitter {k} needs \"corners\" (4 x [x, y, z] metres) and \"radiance\" "
+                             f"([r, g, b])") from None
+        if c.shape != (4, 3) or r.shape != (3,) or not (np.all(np.isfinite(c)) and np.all(np.isfinite(r))):
+            raise InputError(f"{p}: emitter {k}: corners {c.shape} / radiance {r.shape} must be 4 x 3 and 3 "
+                             f"finite numbers")
+        if np.any(r < 0) or np.linalg.norm(np.cross(c[1] - c[0], c[3] - c[0])) < 1e-8:
+            raise InputError(f"{p}: emitter {k}: radiance {r.tolist()} must be >= 0 and the rectangle must "
+                             f"have an area")
+        out.append((c, r * radiance_scale))
+    return out
+
+
 def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None, frames, *,
                     up: np.ndarray, rng: np.random.Generator, settings: FitSettings = FitSettings(),
                     name: str = "scan", known_lights=()) -> RoomLights:

@@ -173,38 +173,6 @@ def fit_settings(cfg: TraceConfig, width: int):
                        threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale)
 
 
-def read_lights_file(file: str, radiance_scale: float = 1.0) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The emitters of ``trace.lights_file``: ``[(corners (4, 3), radiance (3,) x radiance_scale)]``.
-
-    Raises InputError naming the file and the entry for anything that is not a list of
-    ``{"corners": 4 x 3 numbers, "radiance": 3 numbers >= 0}`` with a non-degenerate rectangle.
-    """
-    import json
-
-    p = Path(file)
-    try:
-        doc = json.loads(p.read_text())
-    except (OSError, ValueError) as e:
-        raise InputError(f"{p}: cannot read trace.lights_file ({e}); give a JSON list of "
-                         f"{{\"corners\": [[x, y, z] x 4], \"radiance\": [r, g, b]}}") from None
-    if not isinstance(doc, list):
-        raise InputError(f"{p}: trace.lights_file must be a JSON list of emitters, got {type(doc).__name__}")
-    out = []
-    for k, e in enumerate(doc):
-        try:
-            c = np.asarray(e["corners"], np.float64)
-            r = np.asarray(e["radiance"], np.float64)
-        except (TypeError, KeyError, ValueError):
-            raise InputError(f"{p}: emitter {k} needs \"corners\" (4 x [x, y, z] metres) and \"radiance\" "
-                             f"([r, g, b])") from None
-        if c.shape != (4, 3) or r.shape != (3,) or not (np.all(np.isfinite(c)) and np.all(np.isfinite(r))):
-            raise InputError(f"{p}: emitter {k}: corners {c.shape} / radiance {r.shape} must be 4 x 3 and 3 "
-                             f"finite numbers")
-        if np.any(r < 0) or np.linalg.norm(np.cross(c[1] - c[0], c[3] - c[0])) < 1e-8:
-            raise InputError(f"{p}: emitter {k}: radiance {r.tolist()} must be >= 0 and the rectangle must "
-                             f"have an area")
-        out.append((c, r * radiance_scale))
-    return out
 
 
 def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, stamps: tuple):
@@ -220,7 +188,7 @@ def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, sta
 
     from pipeline.runfolder import ROOM_LIGHTS_TPATH
     from pipeline.seeding import item_rng
-    from pipeline.trace.lightfit import RoomLights, fit_room_lights
+    from pipeline.trace.lightfit import RoomLights, fit_room_lights, read_lights_file
 
     st = fit_settings(cfg, scan.width)
     # the key hashes the files' contents, not their stamps: a resumed or repeated run writes the same bytes

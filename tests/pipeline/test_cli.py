@@ -98,3 +98,33 @@ def test_no_traceback_from_the_real_entry_point(tmp_path):
                        capture_output=True, text=True)
     assert r.returncode == 2
     assert "Traceback" not in r.stderr and "run.workers" in r.stderr
+
+
+@pytest.mark.parametrize("content, words", [
+    (None, ["trace.lights_file", "does not exist"]),
+    ('{"corners": []}', ["trace.lights_file", "lamps.json", "JSON list"]),
+    ('[{"corners": [[0, 0, 2], [1, 0, 2], [1, 1, 2]], "radiance": [1, 1, 1]}]',
+     ["trace.lights_file", "lamps.json", "emitter 0", "4 x 3"]),
+    ('[{"corners": [[0, 0, 2], [1, 0, 2], [1, 1, 2], [0, 1, 2]], "radiance": [1, -1, 1]}]',
+     ["lamps.json", "emitter 0", ">= 0"]),
+])
+def test_bad_lights_file_is_a_config_error(tmp_path, capsys, content, words):
+    """A lights file is read when the config loads (relative to the config's folder): a bad one stops the
+    run before any stage, in one line naming the file and the entry."""
+    if content is not None:
+        (tmp_path / "lamps.json").write_text(content)
+    code, err = _run(["run", _cfg(tmp_path, "[trace]\nlights_file = 'lamps.json'\n"), "--out", tmp_path / "out"],
+                     capsys)
+    assert code == 2
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("scansynth: error:"), err
+    for w in words:
+        assert w in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_good_lights_file_is_resolved_from_the_config_folder(tmp_path):
+    (tmp_path / "lamps.json").write_text('[{"corners": [[0, 0, 2], [1, 0, 2], [1, 1, 2], [0, 1, 2]], '
+                                         '"radiance": [3, 3, 3]}]')
+    cfg = load_config(_cfg(tmp_path, "[trace]\nlights_file = 'lamps.json'\n"))
+    assert cfg.trace.lights_file == str((tmp_path / "lamps.json").resolve())
