@@ -21,7 +21,7 @@ from pathlib import Path
 
 from pipeline import __version__
 from pipeline.config import BUILTIN_PREFIX, Config, ConfigError, config_to_dict, dump_config, load_config
-from pipeline.errors import UserError
+from pipeline.errors import InputError, UserError
 from pipeline.io import atomic_write_bytes, atomic_write_json, read_json, remove_stale_temps
 from pipeline.stages import STAGE_ORDER, get_stage, stage_help
 
@@ -319,6 +319,18 @@ def install_sigterm_handler() -> None:
     signal.signal(signal.SIGTERM, _interrupt)
 
 
+def check_config_files(cfg: Config) -> None:
+    """Read the files a config names whose contents the config cannot check itself (trace.lights_file), so
+    that a bad one stops the run in one line before any stage runs, not when its stage starts."""
+    if cfg.trace.lights_file:
+        from pipeline.trace.lightfit import read_lights_file
+
+        try:
+            read_lights_file(cfg.trace.lights_file)
+        except InputError as e:
+            raise ConfigError(f"trace.lights_file: {e}") from None
+
+
 def main(argv: list[str] | None = None) -> int:
     # Open3D's OpenMP threads spin while they wait; on a shared or busy machine that made TSDF fusion
     # 10-20x slower. Set before anything imports open3d; a value the user set wins.
@@ -338,6 +350,7 @@ def main(argv: list[str] | None = None) -> int:
             args.overrides = [*args.overrides, f"raster.poses={json.dumps(str(args.poses.resolve()))}"]
         if args.command == "run":
             cfg = load_config(args.config, args.overrides)
+            check_config_files(cfg)
             run_dir = args.out.resolve()
             init_run_dir(run_dir, cfg)
             lo = STAGE_ORDER.index(args.from_stage) if args.from_stage else 0
@@ -348,9 +361,11 @@ def main(argv: list[str] | None = None) -> int:
         run_dir = args.run_dir.resolve()
         if args.config is not None:
             cfg = load_config(args.config, args.overrides)
+            check_config_files(cfg)
             init_run_dir(run_dir, cfg)
         else:
             cfg = open_run_dir(run_dir, args.overrides)
+            check_config_files(cfg)
         return run_stages(run_dir, cfg, [args.command], args)
     except UserError as e:
         print(f"scansynth: error: {e}", file=sys.stderr)

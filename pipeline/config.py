@@ -264,7 +264,7 @@ class TraceConfig:
     lights_file: str = option("", "fit lighting: JSON file of emitters you know, [{\"corners\": 4 x [x, y, z] world "
                               "metres, \"radiance\": [r, g, b] linear, 1 = sensor white}]; each emits on the side "
                               "its corners turn counter-clockwise around (normal (c1 - c0) x (c2 - c0)); they light the "
-                              "room as given and the fit explains only the rest; checked when the config loads",
+                              "room as given and the fit explains only the rest; read before any stage runs",
                               path="file")
     frames_per_item: int = option(8, "frames of one drop traced per work item: each item builds the drop's "
                                   "scene once; fewer frames per item = finer load balance over workers", min=1)
@@ -435,16 +435,7 @@ def build_config(raw: dict, *, base_dir: str | Path = ".") -> Config:
         raise ConfigError(f"unknown table [{unknown[0]}]; valid tables: {', '.join(TABLES)}")
     base = Path(base_dir).resolve()
     raw = _with_preset(raw)
-    cfg = Config(**{name: _build_table(name, TABLES[name], raw.get(name, {}), base) for name in TABLES})
-    if cfg.trace.lights_file:   # read now, not when trace starts after the stages before it have run
-        from pipeline.errors import InputError
-        from pipeline.trace.lightfit import read_lights_file
-
-        try:
-            read_lights_file(cfg.trace.lights_file)
-        except InputError as e:
-            raise ConfigError(f"trace.lights_file: {e}") from None
-    return cfg
+    return Config(**{name: _build_table(name, TABLES[name], raw.get(name, {}), base) for name in TABLES})
 
 
 def _with_preset(raw: dict) -> dict:
