@@ -33,12 +33,17 @@ def _cfg(tmp_path, text):
 ])
 def test_bad_configs_exit_2_with_one_line(tmp_path, capsys, text, words):
     code, err = _run(["run", _cfg(tmp_path, text), "--out", tmp_path / "out"], capsys)
+    _assert_one_line_error(code, err, words, tmp_path / "out")
+
+
+def _assert_one_line_error(code, err, words, out):
+    """Exit 2, one line ``scansynth: error: ...`` holding ``words``, and no run folder made."""
     assert code == 2
     lines = [ln for ln in err.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("scansynth: error:"), err
     for w in words:
         assert w in err
-    assert not (tmp_path / "out").exists()
+    assert not out.exists()
 
 
 def test_missing_config_file_and_bad_override(tmp_path, capsys):
@@ -115,12 +120,7 @@ def test_bad_lights_file_is_a_config_error(tmp_path, capsys, content, words):
         (tmp_path / "lamps.json").write_text(content)
     code, err = _run(["run", _cfg(tmp_path, "[trace]\nlights_file = 'lamps.json'\n"), "--out", tmp_path / "out"],
                      capsys)
-    assert code == 2
-    lines = [ln for ln in err.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("scansynth: error:"), err
-    for w in words:
-        assert w in err
-    assert not (tmp_path / "out").exists()
+    _assert_one_line_error(code, err, words, tmp_path / "out")
 
 
 def test_good_lights_file_is_resolved_from_the_config_folder(tmp_path):
