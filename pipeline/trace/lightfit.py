@@ -541,6 +541,15 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         mesh_rad[~have] = mean_obs
     summary: dict = {"frames": len(frames), "exposure": [round(e, 4) for e in exposures],
                      "box_cells": int(nb), "mesh_triangles": int(nt), "known_lights": len(kq)}
+    # a known light emits on one side only (as the trace stage samples it): one that turns its back on every
+    # camera is most likely wound the wrong way, which would light the room in no image. Said, not changed.
+    backwards = [k for k, q in enumerate(kq) if cams and all(
+        float(np.cross(q[1] - q[0], q[2] - q[0]) @ (c - q.mean(axis=0))) < 0 for c in cams)]
+    if backwards:
+        summary["lights_facing_away"] = backwards
+        log.warning("light fit of %s: trace.lights_file emitter(s) %s face away from every camera (they emit on the "
+                    "side their corners turn counter-clockwise around); if they should light the room, reverse "
+                    "their corners' order", name, backwards)
 
     def fallback(note: str) -> RoomLights:
         """The mesh's colours alone (the "scan" lighting) closed by a box of their mean radiance."""

@@ -306,3 +306,18 @@ def test_known_lights_light_the_unseen_cells():
 
     without, lit = top(()), top([(lamp, np.array([20.0, 20.0, 20.0]))])
     assert np.all(lit > 1.15 * without), (lit, without)
+
+
+def test_known_light_wound_away_from_every_camera_is_said(caplog):
+    """A lamp whose corners run the wrong way emits into the wall (one-sided, as the trace samples it): the
+    fit says so in one warning naming the emitter and the fix, and records it; a correct one is not named."""
+    v, f, colors = open_room()
+    good = np.array([[-1.9, -0.5, 1.2], [-1.9, 0.5, 1.2], [-1.9, 0.5, 2.2], [-1.9, -0.5, 2.2]])   # faces +x
+    bad = good[::-1].copy()
+    st = FitSettings(points=200, stride=4, refine=0.0)
+    with caplog.at_level(logging.WARNING, logger="pipeline.trace.lightfit"):
+        rl = fit_room_lights(v, f, colors, frames(2, 120), up=UP, rng=np.random.default_rng(0), settings=st,
+                             known_lights=[(good, np.ones(3)), (bad, np.ones(3))])
+    assert rl.summary["lights_facing_away"] == [1]
+    msgs = [r.getMessage() for r in caplog.records if "face away" in r.getMessage()]
+    assert len(msgs) == 1 and "[1]" in msgs[0] and "reverse" in msgs[0]
