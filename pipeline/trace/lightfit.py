@@ -275,6 +275,13 @@ def _curve_minimum(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return out
 
 
+def _unit_normal(quad: np.ndarray) -> np.ndarray:
+    """(3,) unit normal of rectangle ``quad (4, 3)``: the side its corners turn counter-clockwise around."""
+    q = np.asarray(quad, np.float64)
+    n = np.cross(q[1] - q[0], q[2] - q[0])
+    return n / max(float(np.linalg.norm(n)), 1e-30)
+
+
 def _quad_area(quads: np.ndarray) -> np.ndarray:
     """(C,) areas of parallelograms ``quads (C, 4, 3)`` (corners in order)."""
     q = np.asarray(quads, np.float64).reshape(-1, 4, 3)
@@ -407,7 +414,7 @@ def read_lights_file(file: str, radiance_scale: float = 1.0) -> list[tuple[np.nd
         if c.shape != (4, 3) or r.shape != (3,) or not (np.all(np.isfinite(c)) and np.all(np.isfinite(r))):
             raise InputError(f"{p}: emitter {k}: corners {c.shape} / radiance {r.shape} must be 4 x 3 and 3 "
                              f"finite numbers")
-        if np.any(r < 0) or np.linalg.norm(np.cross(c[1] - c[0], c[3] - c[0])) < 1e-8:
+        if np.any(r < 0) or _quad_area(c)[0] < 1e-8:
             raise InputError(f"{p}: emitter {k}: radiance {r.tolist()} must be >= 0 and the rectangle must "
                              f"have an area")
         out.append((c, r * radiance_scale))
@@ -445,8 +452,12 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     F = np.asarray(faces, np.int64).reshape(-1, 3)
     nv, nt = len(V), len(F)
     frames = list(frames)
-    cams = [np.asarray(T, np.float64)[:3, 3] for _, _, T in frames]
+    cameras = [Camera(K=np.asarray(Kc, np.float64), T_c2w=np.asarray(T, np.float64), width=np.shape(ph)[1],
+                      height=np.shape(ph)[0]) for ph, Kc, T in frames]
+    cams = [c.center for c in cameras]
     kq = [np.asarray(c, np.float64).reshape(4, 3) for c, _ in known_lights]
+    # a known light emits on the side its corners turn counter-clockwise around (as the trace samples it)
+    kq_n = [_unit_normal(q) for q in kq]
     pts_box = np.concatenate([V, np.asarray(cams).reshape(-1, 3), *kq]) if nv or cams else np.zeros((1, 3))
     upv = np.asarray(up, np.float64) / np.linalg.norm(up)
     hgt = pts_box @ upv
@@ -486,12 +497,11 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     vn = np.zeros(nv, np.int64)
     obs_p, obs_n, obs_L = [], [], []
     exposures = []
-    for photo, K, T in frames:
+    for (photo, _, _), cam in zip(frames, cameras):
         photo = np.asarray(photo, np.uint8)
         h, w = photo.shape[:2]
         ys, xs = np.mgrid[st.stride // 2:h:st.stride, st.stride // 2:w:st.stride]
         pix = (ys * w + xs).ravel()
-        cam = Camera(K=np.asarray(K, np.float64), T_c2w=np.asarray(T, np.float64), width=w, height=h)
         o, d = cam.rays(pix, np.full((pix.size, 2), 0.5, np.float32))
         hits = isect.intersect(o, d)
         col = photo.reshape(-1, 3)[pix]
@@ -543,8 +553,8 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
                      "box_cells": int(nb), "mesh_triangles": int(nt), "known_lights": len(kq)}
     # a known light emits on one side only (as the trace stage samples it): one that turns its back on every
     # camera is most likely wound the wrong way, which would light the room in no image. Said, not changed.
-    backwards = [k for k, q in enumerate(kq) if cams and all(
-        float(np.cross(q[1] - q[0], q[2] - q[0]) @ (c - q.mean(axis=0))) < 0 for c in cams)]
+    backwards = [k for k, (q, qn_) in enumerate(zip(kq, kq_n)) if cams and all(
+        float(qn_ @ (c - q.mean(axis=0))) < 0 for c in cams)]
     if backwards:
         summary["lights_facing_away"] = backwards
         log.warning("light fit of %s: trace.lights_file emitter(s) %s face away from every camera (they emit on the "
@@ -647,7 +657,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         q = p_[pick]
         lp = (1 - s1)[:, None] * q[:, 0] + (s1 * (1 - r2))[:, None] * q[:, 1] + (s1 * r2)[:, None] * q[:, 2]
         # a clipped mesh region (or a known light) lights both ways
-        g = _sampled_irradiance(isect, Pi, Ni, lp, tn[pick], tot, eps, two_sided=k >= box_unknown.size)
+        g = _sampled_irradiance(isect, Pi, Ni, lp, tn[pick], tot, eps, two_sided=box_unknown.size <= k < K)
         A[:, k] = g.reshape(n, S).mean(axis=1)
     if kq:   # the known lights' irradiance joins the known part
         Ek = Ek + A[:, K:] @ np.asarray([r for _, r in known_lights], np.float64).reshape(-1, 3)
@@ -673,10 +683,8 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         kn = hit[~un & (tri < nbt)]
         np.add.at(Eu, ku[kn], np.pi / Mu * _at(vrad, AF, hu.prim[kn], hu.u[kn], hu.v[kn]))
         if kq:   # and what the known lights send them (sampled by area, as the trace stage's lights are)
-            kqa = np.asarray(kq)
-            kn_ = np.cross(kqa[:, 1] - kqa[:, 0], kqa[:, 2] - kqa[:, 0])
-            kn_ /= np.linalg.norm(kn_, axis=1, keepdims=True)
-            Eu[:nbu] += _quad_columns(isect, bcen[box_unknown], bnrm[box_unknown], kqa, kn_, 16, rng, eps) @ \
+            Eu[:nbu] += _quad_columns(isect, bcen[box_unknown], bnrm[box_unknown], np.asarray(kq), np.asarray(kq_n),
+                                      16, rng, eps) @ \
                 np.asarray([r for _, r in known_lights], np.float64).reshape(-1, 3)
     reflect = np.zeros(K)
     reflect[:nbu] = 1.0                      # clipped mesh regions are lamps: they do not reflect here
@@ -783,10 +791,8 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         points), the box cells then only reflect, and the chosen lamps are refitted without the prior.
         Returns None when there is nothing to refine."""
         cells = sup[sup < nbu]
-        cams = [Camera(K=np.asarray(Kc, np.float64), T_c2w=np.asarray(T, np.float64), width=ph.shape[1],
-                       height=ph.shape[0]) for ph, Kc, T in frames]
         quads, qn, _ = _lamp_candidates(isect, box_unknown[cells], BV, bnrm, upv, st.refine, h_low + LAMP_MIN_M,
-                                        cams, eps)
+                                        cameras, eps)
         if len(quads) == 0:
             return None
         Ac = _quad_columns(isect, P, N, quads, qn, S, rng, eps)
@@ -900,7 +906,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     qf = []
     for i, q in enumerate(lamp_q[lit]):
         f = np.array([[0, 1, 2], [0, 2, 3]]) + 4 * i + len(AV)
-        if np.cross(q[1] - q[0], q[2] - q[0]) @ lamp_n[lit[i]] < 0:
+        if _unit_normal(q) @ lamp_n[lit[i]] < 0:
             f = f[:, ::-1]
         qf.append(f)
     AVo = np.concatenate([AV, lamp_q[lit].reshape(-1, 3).astype(np.float32)])

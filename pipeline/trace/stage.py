@@ -173,8 +173,6 @@ def fit_settings(cfg: TraceConfig, width: int):
                        threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale)
 
 
-
-
 def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, stamps: tuple):
     """The scan's fitted lights (:func:`pipeline.trace.lightfit.fit_room_lights`), once per scan.
 
