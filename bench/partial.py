@@ -66,7 +66,7 @@ def prepared_run(kind: str, cache: Path) -> Path:
 def drops(run: Path, n_drops: int, *, raise_slab: bool) -> dict:
     from pipeline import simulate as S
     from pipeline.config import build_config
-    from pipeline.physics.drop import one_blas_thread
+    from pipeline.threads import one_blas_thread
     from pipeline.runfolder import ROOM_PROXY_TPATH, file_stamp, load_object_proxy, load_objects, load_scan, path
     from pipeline.seeding import item_rng
 

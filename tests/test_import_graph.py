@@ -123,7 +123,7 @@ def test_meshprep_imports_nothing_from_pipeline():
 # ones, and a stage never imports another stage (it reads their files through pipeline.runfolder).
 BASE = {"pipeline", "pipeline.errors", "pipeline.tolerances", "pipeline.seeding", "pipeline.presets",
         "pipeline.config", "pipeline.stages", "pipeline.camera", "pipeline.color", "pipeline.geometry",
-        "pipeline.types", "pipeline.io", "pipeline.gl"}
+        "pipeline.types", "pipeline.io", "pipeline.gl", "pipeline.threads"}
 RUN_FOLDER = {"pipeline.runfolder", "pipeline.runner"}
 STAGES = {"pipeline.ingest", "pipeline.select", "pipeline.prep", "pipeline.simulate", "pipeline.raster",
           "pipeline.trace.stage", "pipeline.composite", "pipeline.export"}

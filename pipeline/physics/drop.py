@@ -20,6 +20,7 @@ import numpy as np
 from pipeline.physics.step import penetration, step
 from pipeline.physics.io import build_model, make_state, model_poses
 from pipeline.physics.types import Body, Model, Options, Room, State
+from pipeline.threads import one_blas_thread
 
 log = logging.getLogger(__name__)
 
@@ -277,22 +278,6 @@ def left_room(model: Model, state: State, R_w2g: np.ndarray, floor: float,
     if model.has_room:
         out |= np.any((state.pos < model.room_origin) | (state.pos > model.room_upper), axis=1)
     return out
-
-
-def one_blas_thread():
-    """Context manager limiting BLAS to one thread (threadpoolctl), or a no-op without threadpoolctl.
-
-    The solver's matrices are small (hundreds of rows): a threaded BLAS spends more on waking and
-    synchronising threads than on the products, and on a busy machine a 120 x 60 x 120 product took
-    1.9 ms instead of 44 us. Drops run one per process in the pipeline's pool anyway.
-    """
-    import contextlib
-
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
 
 
 def run(model: Model, state: State, settings: DropSettings, *, R_w2g: np.ndarray | None = None,

@@ -41,7 +41,7 @@ def external(model: Model, state: State) -> State:
 def step(model: Model, state: State) -> State:
     """Advance ``state`` by ``model.opt.timestep`` seconds; every sub-step maps a state to a state.
 
-    Loops of steps should run under :func:`pipeline.physics.drop.one_blas_thread` (as
+    Loops of steps should run under :func:`pipeline.threads.one_blas_thread` (as
     :func:`~pipeline.physics.drop.run` does): the solver's products are small and a threaded BLAS makes
     them many times slower on a busy machine.
     """

@@ -37,6 +37,7 @@ from pipeline.runfolder import (DROP_TPATH, FRAMES_TPATH, SCAN_TPATH, TRACE_TPAT
                                 room_trace_mesh)
 from pipeline.runner import Item, Stage, StageContext
 from pipeline.scanformats.common import read_color
+from pipeline.threads import one_blas_thread
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +72,8 @@ def plan(ctx: StageContext) -> list[Item]:
         # it again until the first had written it); the items read RUN/trace/<scene>/lights.npz
         for scene in sorted({sc for sc, _ in drops}):
             try:
-                _room(str(ctx.run_dir), scene, ctx.cfg.trace, ctx.cfg.run.seed, _stamps(ctx, scene))
+                with one_blas_thread():
+                    _room(str(ctx.run_dir), scene, ctx.cfg.trace, ctx.cfg.run.seed, _stamps(ctx, scene))
             except InputError as e:   # said by every item of the scene, which fails alone
                 log.warning("trace: light fit of %s: %s", scene, e)
     return items
@@ -218,6 +220,11 @@ def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, sta
 
 
 def run_item(ctx: StageContext, item: Item) -> dict:
+    with one_blas_thread():   # the workers fill the cores (pipeline.threads)
+        return _run_item(ctx, item)
+
+
+def _run_item(ctx: StageContext, item: Item) -> dict:
     from pipeline.trace.scene import build_scene
     from pipeline.trace.shadow import split_intersectors
 

@@ -27,7 +27,7 @@ NO_SLEEP = Options(sleep_time=1e9)
 @pytest.fixture(autouse=True)
 def _one_blas_thread():
     # the tests step directly; drop.run does this itself (threaded BLAS on small matrices is slow)
-    from pipeline.physics.drop import one_blas_thread
+    from pipeline.threads import one_blas_thread
 
     with one_blas_thread():
         yield
