@@ -241,6 +241,12 @@ def write_json(path: str | Path, obj: Any) -> Path:
     return atomic_write_bytes(path, dumps_json(obj).encode("utf-8"))
 
 
+# zlib level of NPZ members: 1, not the default 6. The arrays are mostly float images, which level 6
+# shrinks only 4 % more (24 raster/trace/composite files of 7-Scenes: 14.1 vs 13.5 MB of 163 MB) at
+# about twice the CPU; every stage writes them, the trace stage ~0.08 s per frame at level 6.
+NPZ_LEVEL = 1
+
+
 def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
     """NPZ file contents with fixed zip timestamps and sorted names: equal arrays give equal bytes."""
     buf = _io.BytesIO()
@@ -250,7 +256,7 @@ def npz_bytes(arrays: dict[str, np.ndarray]) -> bytes:
             np.lib.format.write_array(arr, np.asanyarray(arrays[name]), allow_pickle=False)
             info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
             info.compress_type = zipfile.ZIP_DEFLATED
-            zf.writestr(info, arr.getvalue())
+            zf.writestr(info, arr.getvalue(), compresslevel=NPZ_LEVEL)
     return buf.getvalue()
 
 
