@@ -23,4 +23,8 @@ def one_blas_thread():
         from threadpoolctl import threadpool_limits
     except ImportError:
         return contextlib.nullcontext()
+    # the limit reaches only the BLAS libraries loaded when it is set: scipy ships its own OpenBLAS,
+    # loaded on scipy.linalg's first import, which may come inside the block
+    import scipy.linalg  # noqa: F401
+
     return threadpool_limits(limits=1, user_api="blas")

@@ -209,11 +209,13 @@ def _gather(isect, points: np.ndarray, normals: np.ndarray, rays: int, rng: np.r
 def _nnls(Q: np.ndarray, g: np.ndarray, lam: np.ndarray) -> np.ndarray:
     """``argmin_x>=0 0.5 x'Qx - g'x + lam'x`` (``Q`` symmetric positive semi-definite), solved exactly.
 
-    With ``Q = R'R`` (Cholesky, on the unit-diagonal rescaling, a relative ridge of 1e-10 or more where ``Q``
-    is singular) it is the non-negative least squares ``min ||R x - R'^-1 (g - lam)||`` solved by Lawson and
-    Hanson's active set (``scipy.optimize.nnls``). The projected-gradient iteration (FISTA, 400 steps) used
-    before stopped short of the minimum in 3 solves of 4 on 7-Scenes (objective 0.04 % higher at the median,
-    11 % at the 90th percentile): the level searches compared objectives that were not minima.
+    With ``Q = R'R`` (Cholesky of the unit-diagonal rescaling plus a ridge of 1e-10, more where rounding
+    leaves it indefinite) it is the non-negative least squares ``min ||R x - R'^-1 (g - lam)||``, solved by
+    Lawson and Hanson's active set (``scipy.optimize.nnls``) on a unit right-hand side (scipy 1.12-1.14 stop
+    on an absolute tolerance). The projected-gradient iteration (FISTA, 400 steps) used before stopped short
+    of the minimum in 3 solves of 4 on 7-Scenes (objective 0.04 % higher at the median, 11 % at the 90th
+    percentile): the level searches compared objectives that were not minima. Where there is no answer
+    (non-finite input, no factor, no convergence) it says so and leaves the emission at zero.
     """
     from scipy.linalg import solve_triangular
     from scipy.optimize import nnls
@@ -223,6 +225,13 @@ def _nnls(Q: np.ndarray, g: np.ndarray, lam: np.ndarray) -> np.ndarray:
     use = np.flatnonzero(dq > 1e-300)      # a column that sends no light stays at zero (lam >= 0)
     if use.size == 0:
         return x
+
+    def none(why: str) -> np.ndarray:
+        log.warning("light fit: no emission solve for %d unknowns (%s); left at zero", use.size, why)
+        return x
+
+    if not (np.all(np.isfinite(Q)) and np.all(np.isfinite(g)) and np.all(np.isfinite(lam))):
+        return none("non-finite input")
     d = np.sqrt(dq[use])
     Qs = Q[np.ix_(use, use)] / d[:, None] / d[None, :]
     for ridge in (1e-10, 1e-8, 1e-6, 1e-4):
@@ -232,14 +241,16 @@ def _nnls(Q: np.ndarray, g: np.ndarray, lam: np.ndarray) -> np.ndarray:
         except np.linalg.LinAlgError:
             continue
     else:
+        return none("no Cholesky factor")
+    b = solve_triangular(R.T, (g[use] - lam[use]) / d, lower=True)
+    bn = float(np.linalg.norm(b))
+    if bn == 0:
         return x
     try:
-        z, _ = nnls(R, solve_triangular(R.T, (g[use] - lam[use]) / d, lower=True), maxiter=50 * use.size)
-    except RuntimeError:     # the active set did not settle: no emission here rather than a guess
-        log.warning("light fit: the non-negative least squares did not converge (%d unknowns); left at zero",
-                    use.size)
-        return x
-    x[use] = z / d
+        z, _ = nnls(R, b / bn, maxiter=50 * use.size)
+    except RuntimeError:
+        return none("the active set did not settle")
+    x[use] = z * bn / d
     return x
 
 
