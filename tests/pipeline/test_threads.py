@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
 
 CHECK = """
 from threadpoolctl import threadpool_info
@@ -19,7 +22,7 @@ def test_every_blas_is_on_one_thread_inside_even_one_loaded_there():
     """numpy's and scipy's OpenBLAS (scipy's loads on its first import, which may come inside the block,
     as the light fit's does) both run one thread inside ``one_blas_thread``; a fresh process, so that
     nothing loaded scipy before."""
-    r = subprocess.run([sys.executable, "-c", CHECK], capture_output=True, text=True, timeout=120,
+    r = subprocess.run([sys.executable, "-c", CHECK], capture_output=True, text=True, timeout=120, cwd=ROOT,
                        env={"OPENBLAS_NUM_THREADS": "2", "PATH": ""})
     assert r.returncode == 0, r.stderr[-2000:]
     libs, most = (int(x) for x in r.stdout.split())
