@@ -242,8 +242,9 @@ class TraceConfig:
     room_albedo: float = option(0.5, "photo-based lighting: typical room albedo (grey-world prior) for the energy "
                                 "balance that sets the radiance of directions no photo saw; 0 = env_radiance "
                                 "there", min=0.0, max=1.0)
-    fit_points: int = option(2000, "fit lighting: room points the photos saw that the light fit explains at most",
-                             min=50)
+    fit_points: int = option(4000, "fit lighting: room points the photos saw that the light fit explains at most "
+                             "(a random draw: 2000 points moved the suite's objects PSNR by up to 4 dB from one "
+                             "seed to another, 4000 by under 1 dB)", min=50)
     fit_cell: float = option(0.4, "fit lighting: cell size of the box that closes the room's holes (each cell "
                              "an unknown emitter), metres", min=0.05)
     fit_sparsity: float = option(0.2, "fit lighting: weight of the few-bright-emitters prior (L1 on emission, each "

@@ -47,7 +47,7 @@ White balance comes from the same fit: each channel is fitted on its own, so the
 that explains several surfaces under one light, and the objects' own colours are lit in the photo's
 colour space; no grey-world assumption is made.
 
-Cost (640x480, 24 photos, 2000 points): a few CPU seconds; computed once per scan and kept in
+Cost (640x480, 24 photos, 4000 points): a few CPU seconds; computed once per scan and kept in
 ``RUN/trace/<scene>/lights.npz``.
 """
 
@@ -82,7 +82,7 @@ LIGHT_SHARE = 0.002           # emitters with at least this share of the fitted 
 class FitSettings:
     """Knobs of :func:`fit_room_lights` (the trace stage fills them from TraceConfig)."""
 
-    points: int = 2000          # room points the fit uses at most
+    points: int = 4000          # room points the fit uses at most
     gather_rays: int = 64       # hemisphere rays per point for the known irradiance
     emitter_samples: int = 2    # area samples per (point, unknown) pair
     cell: float = 0.4           # metres, size of the closing box's cells
