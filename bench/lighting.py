@@ -32,6 +32,7 @@ Honest tuning: :data:`TUNE_ROOMS` were used to choose the fit's settings; the he
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import os
@@ -209,6 +210,10 @@ def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int 
             from pipeline.config import dump_config, load_config
 
             vcfg = load_config(run / CONFIG_NAME, sets)
+            # the variant's own stages (trace, composite) at today's defaults: the base's recorded config
+            # froze the defaults of the day it was made (a changed default would never reach the variants)
+            fresh = load_config(cfg, sets)
+            vcfg = dataclasses.replace(vcfg, trace=fresh.trace, composite=fresh.composite)
             (run / CONFIG_NAME).write_text(dump_config(vcfg))
             args = ["run", str(run / CONFIG_NAME), "--out", str(run), "--from", "trace", "--to", "composite",
                     "--progress", "off", "-v"]
