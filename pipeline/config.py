@@ -243,8 +243,8 @@ class TraceConfig:
                                 "balance that sets the radiance of directions no photo saw; 0 = env_radiance "
                                 "there", min=0.0, max=1.0)
     fit_points: int = option(4000, "fit lighting: room points the photos saw that the light fit explains at most "
-                             "(a random draw: 2000 points moved the suite's objects PSNR by up to 4 dB from one "
-                             "seed to another, 4000 by under 1 dB)", min=50)
+                             "(drawn at random: with 2000 a suite room's objects PSNR moved by up to 7 dB from one "
+                             "run seed to another, with 4000 by up to 1.5 dB)", min=50)
     fit_cell: float = option(0.4, "fit lighting: cell size of the box that closes the room's holes (each cell "
                              "an unknown emitter), metres", min=0.05)
     fit_sparsity: float = option(0.2, "fit lighting: weight of the few-bright-emitters prior (L1 on emission, each "
