@@ -372,3 +372,23 @@ def test_emission_solve_without_an_answer_emits_nothing(caplog):
         x = _nnls(Q, np.ones(3), np.zeros(3))
     assert np.array_equal(x, np.zeros(3))
     assert "non-finite" in caplog.text
+
+
+def test_a_lamp_seen_through_a_gap_pays_for_its_size():
+    """The sparsity prior's sliver rule (:func:`pipeline.trace.lightfit._sliver_rule`), per unit of light
+    sent to the points (price / column): a small lamp seen as well as its size says pays what a cell does
+    (small is not suspicious); one the points see a tenth as well (a square behind a wall, through a gap)
+    pays ten times as much; one seen a hundredth as well is not fitted."""
+    from pipeline.trace.lightfit import _sliver_rule
+
+    med, dens = 2.0, 12.5                      # the median cell's column; its column per m2 (0.16 m2 cell)
+    area = 0.01                                # 10 cm lamps
+    expected = np.full(3, area * dens)
+    norms = expected * np.array([1.0, 0.1, 0.01])
+    fitted, price = _sliver_rule(norms, expected, med)
+    assert fitted.tolist() == [True, True, False]
+    per_light = price / norms
+    assert np.isclose(per_light[0], 1 / med)                    # as a whole cell per unit of light
+    assert np.isclose(per_light[1], 10 / med)
+    cell_fit, cell_price = _sliver_rule(np.array([med, 0.5 * med]), np.full(2, med), med)
+    assert cell_fit.all() and np.allclose(cell_price, 1.0)     # stage 1: at least the median cell's price
