@@ -508,7 +508,8 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     KV = np.concatenate(kq) if kq else np.zeros((0, 3))
     KF = np.array([[4 * i, 4 * i + 1, 4 * i + 2] for i in range(len(kq))] +
                   [[4 * i, 4 * i + 2, 4 * i + 3] for i in range(len(kq))], np.int64).reshape(-1, 3)
-    Krad = np.repeat(np.asarray([r for _, r in known_lights], np.float64).reshape(-1, 3), 4, axis=0)
+    k_rad = np.asarray([r for _, r in known_lights], np.float64).reshape(-1, 3)   # (len(kq), 3)
+    Krad = np.repeat(k_rad, 4, axis=0)
     AV = np.concatenate([V, BV, KV]).astype(np.float32)
     AF = np.concatenate([F, BF + nv, KF + nv + len(BV)]).astype(np.int32)
     nbt = nt + len(BF)                       # triangles before the known lights
@@ -695,7 +696,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         g = _sampled_irradiance(isect, Pi, Ni, lp, tn[pick], tot, eps, two_sided=box_unknown.size <= k < K)
         A[:, k] = g.reshape(n, S).mean(axis=1)
     if kq:   # the known lights' irradiance joins the known part
-        Ek = Ek + A[:, K:] @ np.asarray([r for _, r in known_lights], np.float64).reshape(-1, 3)
+        Ek = Ek + A[:, K:] @ k_rad
     A = np.ascontiguousarray(A[:, :K])
     active = np.flatnonzero(A.max(axis=0) > 0)
 
@@ -719,8 +720,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         np.add.at(Eu, ku[kn], np.pi / Mu * _at(vrad, AF, hu.prim[kn], hu.u[kn], hu.v[kn]))
         if kq:   # and what the known lights send them (sampled by area, as the trace stage's lights are)
             Eu[:nbu] += _quad_columns(isect, bcen[box_unknown], bnrm[box_unknown], np.asarray(kq), np.asarray(kq_n),
-                                      16, rng, eps) @ \
-                np.asarray([r for _, r in known_lights], np.float64).reshape(-1, 3)
+                                      16, rng, eps) @ k_rad
     reflect = np.zeros(K)
     reflect[:nbu] = 1.0                      # clipped mesh regions are lamps: they do not reflect here
 
