@@ -790,14 +790,22 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         res = np.sum((w[:, None] * (pred - L)) ** 2, axis=0)
         return ej, rho, E, res + 2 * l1          # the objective: data + few-bright-emitters prior
 
-    def design(level: np.ndarray) -> tuple[list, list, np.ndarray]:
-        """Per channel: transport of the unknown cells, irradiance at the points per unit emission of each
-        unknown, and the known light at the points (direct + reflected once more by the unseen cells)."""
+    def design(level: np.ndarray, cols: np.ndarray, fixed: np.ndarray, extra: np.ndarray | None = None
+               ) -> tuple[list, list, np.ndarray]:
+        """Per channel at albedo levels ``level (3,)``: the transport of the unknown cells, the irradiance at
+        the points per unit emission of the unknowns ``cols`` (then of the ``extra (K, J)`` sources that
+        light the unseen cells, if given), and the known light at the points: direct, reflected once more by
+        the unseen cells, and sent by the unknowns ``fixed`` at their lower bound. Only the columns asked for
+        are multiplied out: A (M x) costs the points x K per column, (A M) the points x K x K."""
         Ms = {lv: transport(lv) for lv in set(level.tolist())}
-        AMs = {lv: A @ M for lv, M in Ms.items()}
         Mc = [Ms[lv] for lv in level.tolist()]
-        Ae = [AMs[lv] for lv in level.tolist()]
-        Ekc = np.stack([Ek[:, c] + Ae[c] @ (rho_u(level[c]) * Eu[:, c]) for c in range(3)], axis=1)
+        Ac = {}
+        for lv, M in Ms.items():
+            rhs = M[:, cols] if extra is None else np.concatenate([M[:, cols], M @ (rho_u(lv)[:, None] * extra)], 1)
+            Ac[lv] = A @ rhs
+        Ae = [Ac[lv] for lv in level.tolist()]
+        Ekc = np.stack([Ek[:, c] + A @ (Mc[c] @ (rho_u(level[c]) * Eu[:, c]) + Mc[c][:, fixed] @ lb[fixed, c])
+                        for c in range(3)], axis=1)
         return Mc, Ae, Ekc
 
     def fit_at(level: np.ndarray, iters: int = 4, active: np.ndarray = active, sparsity: float = st.sparsity
@@ -805,11 +813,8 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         """Emission of the unknowns ``active`` (the others stay at their lower bound) and albedo at each
         channel's albedo level ``level (3,)``; returns (emission, unknowns' radiance, irradiance at the
         points), the patch albedo and each channel's objective."""
-        Mc, Ae, Ekc = design(level)
-        rest = np.setdiff1d(np.arange(K), active)
-        Ekc = Ekc + np.stack([Ae[c][:, rest] @ lb[rest, c] for c in range(3)], axis=1)
-        ea, rho, E, obj = alternate(level, Ekc, [x[:, active] for x in Ae], lb[active], lam_k[active], sparsity,
-                                    iters)
+        Mc, Ae, Ekc = design(level, active, np.setdiff1d(np.arange(K), active))
+        ea, rho, E, obj = alternate(level, Ekc, Ae, lb[active], lam_k[active], sparsity, iters)
         e = lb.copy()
         e[active] = ea
         Lu = np.stack([Mc[c] @ (e[:, c] + rho_u(level[c]) * Eu[:, c]) for c in range(3)], axis=1)
@@ -849,10 +854,8 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
 
         def problem(lv: np.ndarray, cand: np.ndarray):
             """Transport, known light and columns (the regions', then candidates ``cand``') at levels ``lv``."""
-            Mc, Ae, Ekc = design(lv)
-            Ekc = Ekc + np.stack([Ae[c][:, rest] @ lb[rest, c] for c in range(3)], axis=1)
-            cols = [np.concatenate([Ae[c][:, regions], Ac[:, cand] + (Ae[c] * rho_u(lv[c])) @ Gc[:, cand]], axis=1)
-                    for c in range(3)]
+            Mc, Ae, Ekc = design(lv, regions, rest, Gc[:, cand])
+            cols = [np.concatenate([Ae[c][:, :nr], Ac[:, cand] + Ae[c][:, nr:]], axis=1) for c in range(3)]
             return Mc, Ekc, cols
 
         lbj = np.concatenate([lb[regions], np.zeros((len(quads), 3))])
