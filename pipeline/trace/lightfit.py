@@ -57,8 +57,10 @@ Cost (640x480, 24 photos, 8000 points): under 10 CPU seconds; computed once per 
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -79,6 +81,7 @@ ASSUMED_CEILING_M = 2.5       # a scan shorter than this (floor to top) is close
 PRIOR_ALBEDO = 0.5            # albedo at which the sparsity prior's weight is measured against the data term
 REFINE_DEPTHS = (0.0, 0.25, 0.5, 0.75)  # stage 3: metres below an emitting ceiling cell a lamp may hang
 LAMP_MIN_M = 1.5              # stage 3: a hanging lamp is at least this far above the scan's lowest point
+COLUMN_CHUNK = 8              # columns whose shadow rays are traced together (on the fit's threads)
 LIGHT_SHARE = 0.002           # emitters with at least this share of the fitted power are sampled as lights
 
 
@@ -352,23 +355,35 @@ def _sampled_irradiance(isect, Pi: np.ndarray, Ni: np.ndarray, lp: np.ndarray, n
     return g
 
 
+def _in_order(jobs: list, pool) -> list:
+    """``[job() for job in jobs]``, on ``pool``'s threads when there is one (Embree traces without holding
+    the GIL). Callers draw their random numbers before, in order: the result does not depend on the pool."""
+    if pool is None:
+        return [job() for job in jobs]
+    return list(pool.map(lambda job: job(), jobs))
+
+
 def _quad_columns(isect, P: np.ndarray, N: np.ndarray, quads: np.ndarray, normals: np.ndarray, samples: int,
-                  rng: np.random.Generator, eps: float) -> np.ndarray:
+                  rng: np.random.Generator, eps: float, pool=None) -> np.ndarray:
     """(n, C) irradiance at points ``P`` (normals ``N``) per unit radiance of each one-sided rectangle
     ``quads (C, 4, 3)`` emitting along ``normals (C, 3)``: ``samples`` area samples per pair, with visibility
-    through ``isect``."""
+    through ``isect``; the shadow rays on ``pool``'s threads if given."""
     n, C = len(P), len(quads)
     out = np.zeros((n, C))
     Pi = np.repeat(P, samples, axis=0)
     Ni = np.repeat(N, samples, axis=0)
-    for c in range(C):
-        q = quads[c]
-        a, b = q[1] - q[0], q[3] - q[0]
-        area = float(_quad_area(q)[0])
-        r = rng.random((2, n * samples))
-        lp = q[0] + r[0][:, None] * a + r[1][:, None] * b
-        g = _sampled_irradiance(isect, Pi, Ni, lp, np.broadcast_to(normals[c], lp.shape), area, eps)
-        out[:, c] = g.reshape(n, samples).mean(axis=1)
+    for c0 in range(0, C, COLUMN_CHUNK):
+        jobs = []
+        for c in range(c0, min(C, c0 + COLUMN_CHUNK)):
+            q = quads[c]
+            a, b = q[1] - q[0], q[3] - q[0]
+            area = float(_quad_area(q)[0])
+            r = rng.random((2, n * samples))
+            lp = q[0] + r[0][:, None] * a + r[1][:, None] * b
+            jobs.append(functools.partial(_sampled_irradiance, isect, Pi, Ni, lp,
+                                          np.broadcast_to(normals[c], lp.shape), area, eps))
+        for c, g in enumerate(_in_order(jobs, pool), start=c0):
+            out[:, c] = g.reshape(n, samples).mean(axis=1)
     return out
 
 
@@ -462,7 +477,7 @@ def read_lights_file(file: str, radiance_scale: float = 1.0) -> list[tuple[np.nd
 
 def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None, frames, *,
                     up: np.ndarray, rng: np.random.Generator, settings: FitSettings = FitSettings(),
-                    name: str = "scan", known_lights=()) -> RoomLights:
+                    name: str = "scan", known_lights=(), threads: int = 1) -> RoomLights:
     """Recover the room's emitters from its photos (see the module docstring).
 
     Parameters
@@ -477,11 +492,25 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     known_lights : ``(corners (4, 3) metres, radiance (3,) linear, photo units)`` rectangles that are
         known to emit (``trace.lights_file``): added to the room as lights of that radiance; the fit
         then explains only what they leave unexplained
+    threads : threads that trace the fit's shadow rays (the result does not depend on it): more than one
+        where nothing else runs beside the fit (the trace stage's plan)
 
     Returns
     -------
     RoomLights; its ``summary["note"]`` says in one line what was assumed when the fit fell back
     """
+    if threads <= 1:
+        return _fit_room_lights(vertices, faces, colors, frames, up=up, rng=rng, settings=settings, name=name,
+                                known_lights=known_lights, pool=None)
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        return _fit_room_lights(vertices, faces, colors, frames, up=up, rng=rng, settings=settings, name=name,
+                                known_lights=known_lights, pool=pool)
+
+
+def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None, frames, *,
+                     up: np.ndarray, rng: np.random.Generator, settings: FitSettings, name: str, known_lights,
+                     pool: ThreadPoolExecutor | None) -> RoomLights:
+    """:func:`fit_room_lights`, its shadow rays on ``pool``'s threads (None: this one)."""
     from pipeline.camera import Camera
     from pipeline.trace.intersect import EmbreeIntersector
 
@@ -686,19 +715,26 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     S = st.emitter_samples
     Pi = np.repeat(P, S, axis=0)
     Ni = np.repeat(N, S, axis=0)
-    for k, tris in enumerate(el_tris + known_tris):
-        ar = tarea[tris]
-        tot = float(ar.sum())
-        if tot <= 0:
-            continue
-        pick = tris[np.minimum(np.searchsorted(np.cumsum(ar) / tot, rng.random(n * S)), len(tris) - 1)]
-        r1, r2 = rng.random(n * S), rng.random(n * S)
-        s1 = np.sqrt(r1)
-        q = p_[pick]
-        lp = (1 - s1)[:, None] * q[:, 0] + (s1 * (1 - r2))[:, None] * q[:, 1] + (s1 * r2)[:, None] * q[:, 2]
-        # a clipped mesh region (or a known light) lights both ways
-        g = _sampled_irradiance(isect, Pi, Ni, lp, tn[pick], tot, eps, two_sided=box_unknown.size <= k < K)
-        A[:, k] = g.reshape(n, S).mean(axis=1)
+    sources = el_tris + known_tris
+    for k0 in range(0, len(sources), COLUMN_CHUNK):
+        jobs, ks = [], []
+        for k in range(k0, min(len(sources), k0 + COLUMN_CHUNK)):
+            tris = sources[k]
+            ar = tarea[tris]
+            tot = float(ar.sum())
+            if tot <= 0:
+                continue
+            pick = tris[np.minimum(np.searchsorted(np.cumsum(ar) / tot, rng.random(n * S)), len(tris) - 1)]
+            r1, r2 = rng.random(n * S), rng.random(n * S)
+            s1 = np.sqrt(r1)
+            q = p_[pick]
+            lp = (1 - s1)[:, None] * q[:, 0] + (s1 * (1 - r2))[:, None] * q[:, 1] + (s1 * r2)[:, None] * q[:, 2]
+            # a clipped mesh region (or a known light) lights both ways
+            jobs.append(functools.partial(_sampled_irradiance, isect, Pi, Ni, lp, tn[pick], tot, eps,
+                                          two_sided=box_unknown.size <= k < K))
+            ks.append(k)
+        for k, g in zip(ks, _in_order(jobs, pool)):
+            A[:, k] = g.reshape(n, S).mean(axis=1)
     if kq:   # the known lights' irradiance joins the known part
         Ek = Ek + A[:, K:] @ k_rad
     A = np.ascontiguousarray(A[:, :K])
@@ -728,7 +764,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         np.add.at(Eu, ku[kn], np.pi / Mu * _at(vrad, AF, hu.prim[kn], hu.u[kn], hu.v[kn]))
         if kq:   # and what the known lights send them (sampled by area, as the trace stage's lights are)
             Eu[:nbu] += _quad_columns(isect, bcen[box_unknown], bnrm[box_unknown], np.asarray(kq), np.asarray(kq_n),
-                                      16, rng, eps) @ k_rad
+                                      16, rng, eps, pool) @ k_rad
     reflect = np.zeros(K)
     reflect[:nbu] = 1.0                      # clipped mesh regions are lamps: they do not reflect here
 
@@ -851,7 +887,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
                                         cameras, eps)
         if len(quads) == 0:
             return None
-        Ac = _quad_columns(isect, P[srows], N[srows], quads, qn, S, rng, eps)   # the choice among them
+        Ac = _quad_columns(isect, P[srows], N[srows], quads, qn, S, rng, eps, pool)   # the choice among them
         cnc = np.linalg.norm(Ac, axis=0)
         # stage 1's sliver rule, per unit area: a lamp the points see far less of than its size says (a box
         # square behind a wall, seen through a gap in the mesh) is priced as a lamp of its size seen like the
@@ -863,7 +899,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         if len(quads) == 0:
             return None
         Gc = np.zeros((K, len(quads)))
-        Gc[:nbu] = _quad_columns(isect, bcen[box_unknown], bnrm[box_unknown], quads, qn, 4, rng, eps)
+        Gc[:nbu] = _quad_columns(isect, bcen[box_unknown], bnrm[box_unknown], quads, qn, 4, rng, eps, pool)
         regions = sup[sup >= nbu]                      # clipped mesh regions stay as they are
         rest = np.setdiff1d(np.arange(K), regions)     # every box cell only reflects (or emits its lower bound)
         nr = regions.size
@@ -889,14 +925,15 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         keep = np.sort(order[:max(1, int(np.searchsorted(cum, st.support_share)) + 1)][:st.max_emitters])
         js = np.concatenate([np.arange(nr), nr + keep])
         # the chosen lamps' light at all the points (fresh samples)
-        Akeep = _quad_columns(isect, P, N, quads[keep], qn[keep], S, rng, eps)
+        Akeep = _quad_columns(isect, P, N, quads[keep], qn[keep], S, rng, eps, pool)
         # with the lamps where they are, each channel's albedo level again at the residual's minimum
         summary["stage2_level"] = [float(x) for x in level]
-        res3 = []
-        for lv in ALBEDO_LEVELS:
+
+        def objective3(lv: float) -> np.ndarray:
             _, Ekc, cols = problem(np.full(3, lv), keep, Akeep)
-            res3.append(alternate(np.full(3, lv), Ekc, cols, lbj[js], lamj[js], 0.0, 2)[3])
-        res3 = np.asarray(res3)
+            return alternate(np.full(3, lv), Ekc, cols, lbj[js], lamj[js], 0.0, 2)[3]
+
+        res3 = np.asarray(_in_order([functools.partial(objective3, lv) for lv in ALBEDO_LEVELS], pool))
         level = _curve_minimum(np.asarray(ALBEDO_LEVELS), res3)
         Mc, Ekc, cols = problem(level, keep, Akeep)
         ej, rho3, E3, obj3 = alternate(level, Ekc, cols, lbj[js], lamj[js], 0.0, 5)
@@ -922,7 +959,12 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
         # 1. where the light comes from: emission anywhere, priced by the sparsity prior; the level is the
         # highest (the least light) that explains the photos within level_tolerance of the best (with
         # emission free everywhere the level is barely identifiable: unknown cells make up any amount)
-        res_curve = np.array([fit_at(np.full(3, lv), iters=2, rows=srows)[2] for lv in ALBEDO_LEVELS])  # (levels, 3)
+        # (the levels are independent searches: on the pool's threads, numpy's products run side by side)
+        def objective(lv: float, **kw) -> np.ndarray:
+            return fit_at(np.full(3, lv), iters=2, **kw)[2]
+
+        res_curve = np.array(_in_order([functools.partial(objective, lv, rows=srows) for lv in ALBEDO_LEVELS],
+                                       pool))   # (levels, 3)
         ok = res_curve <= res_curve.min(axis=0) * (1 + st.level_tolerance)
         level1 = np.asarray(ALBEDO_LEVELS)[[int(np.flatnonzero(ok[:, c]).max()) for c in range(3)]]
         summary["stage1_residuals"] = [round(float(r), 3) for r in res_curve @ LUMINANCE_F64]
@@ -939,8 +981,8 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
             keep = order[:max(1, int(np.searchsorted(cum, st.support_share)) + 1)][:st.max_emitters]
             sup = np.union1d(np.intersect1d(keep, active), np.intersect1d(np.arange(box_unknown.size, K), active))
             if sup.size:
-                res2 = np.array([fit_at(np.full(3, lv), iters=2, active=sup, sparsity=0.0)[2]
-                                 for lv in ALBEDO_LEVELS])
+                res2 = np.array(_in_order([functools.partial(objective, lv, active=sup, sparsity=0.0)
+                                           for lv in ALBEDO_LEVELS], pool))
                 best_level = np.asarray(ALBEDO_LEVELS)[np.argmin(res2, axis=0)]
                 (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0)
                 stage2 = True

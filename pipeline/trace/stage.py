@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
@@ -69,11 +70,15 @@ def plan(ctx: StageContext) -> list[Item]:
                               data={"scene": scene, "drop": drop, "frames": chunk}))
     if ctx.cfg.trace.lighting == "fit":
         # the light fit once per scene, here, before the items spread over the workers (each would fit
-        # it again until the first had written it); the items read RUN/trace/<scene>/lights.npz
+        # it again until the first had written it); the items read RUN/trace/<scene>/lights.npz. Nothing
+        # else runs meanwhile: its shadow rays and level searches take as many threads as the run has
+        # workers (the same bytes on any number; BLAS stays on one thread per product, whose rounding
+        # would change with more)
+        threads = min(ctx.cfg.run.workers or os.cpu_count() or 1, os.cpu_count() or 1)
         for scene in sorted({sc for sc, _ in drops}):
             try:
                 with one_blas_thread():
-                    _room(str(ctx.run_dir), scene, ctx.cfg.trace, ctx.cfg.run.seed, _stamps(ctx, scene))
+                    _room(str(ctx.run_dir), scene, ctx.cfg.trace, ctx.cfg.run.seed, _stamps(ctx, scene), threads)
             except InputError as e:   # said by every item of the scene, which fails alone
                 log.warning("trace: light fit of %s: %s", scene, e)
     return items
@@ -138,13 +143,13 @@ def trace_frame(ctx: StageContext, scene, rf: RasterFrame, labels: np.ndarray, *
 
 
 @functools.lru_cache(maxsize=2)
-def _room(run_dir: str, scene_name: str, cfg: TraceConfig, seed: int, stamps: tuple) -> tuple:
+def _room(run_dir: str, scene_name: str, cfg: TraceConfig, seed: int, stamps: tuple, fit_threads: int = 1) -> tuple:
     """``(scan, room vertices, faces, colours, light_vertices, env_map, room_lights)`` of a scene, read-only
     arrays (``room_lights``: the fitted :class:`~pipeline.trace.lightfit.RoomLights`, fit lighting only).
 
     Kept per worker process for the next item of the same scene (the photo-based lighting alone costs
     ~0.7 CPU s per item on 7-Scenes); ``stamps`` (path, mtime, size of scan.json and the room mesh)
-    make a changed file a new entry.
+    make a changed file a new entry. ``fit_threads``: the light fit's threads, where it has to fit.
     """
     from pipeline.scanformats.mesh import read_room_ply
 
@@ -156,7 +161,7 @@ def _room(run_dir: str, scene_name: str, cfg: TraceConfig, seed: int, stamps: tu
 
         light_v, env_map = scan_lighting(scan, rv, rf, rc, cfg, seed)
     if cfg.lighting == "fit":
-        rl = room_lights(run_dir, scan, rv, rf, rc, cfg, seed, stamps)
+        rl = room_lights(run_dir, scan, rv, rf, rc, cfg, seed, stamps, fit_threads)
     for a in (rv, rf, rc, light_v, env_map):
         if isinstance(a, np.ndarray):
             a.setflags(write=False)
@@ -175,7 +180,7 @@ def fit_settings(cfg: TraceConfig, width: int):
                        threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale)
 
 
-def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, stamps: tuple):
+def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, stamps: tuple, threads: int = 1):
     """The scan's fitted lights (:func:`pipeline.trace.lightfit.fit_room_lights`), once per scan.
 
     Kept in ``RUN/trace/<scene>/lights.npz`` with the key it was made for (the fit's settings, the seed,
@@ -213,7 +218,7 @@ def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, sta
     frames = [(read_color(scan, int(i)), scan.K[i], scan.T_c2w[i]) for i in idx]
     known = read_lights_file(cfg.lights_file, cfg.radiance_scale) if cfg.lights_file else []
     rl = fit_room_lights(rv, rf, rc, frames, up=scan.up_w, rng=item_rng(seed, "trace", "light-fit", scan.name),
-                         settings=st, name=scan.name, known_lights=known)
+                         settings=st, name=scan.name, known_lights=known, threads=threads)
     rl.summary["key"] = key
     rl.save(out)
     return rl

@@ -93,6 +93,24 @@ def test_unseen_ceiling_gets_the_light():
     assert em and sum(e["power_share"] for e in em if e["centre"][2] > 1.6) > 0.9, em[:5]
 
 
+def test_threads_do_not_change_the_lights():
+    """The trace stage's plan fits on several threads (shadow rays and the level searches side by side):
+    the random draws stay in order, so the lights are the same bytes as on one thread (a run's bytes must
+    not depend on its worker count)."""
+    v, f, colors = open_room()
+    fr = frames(4, 120)
+    st = FitSettings(points=800, stride=2, cell=0.5)
+
+    def fit(threads):
+        return fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(3), settings=st, threads=threads)
+
+    one, three = fit(1), fit(3)
+    assert one.summary["fitted"] and one.summary["emitters"]
+    for k in ("vertices", "faces", "radiance", "light_tri"):
+        assert np.array_equal(getattr(one, k), getattr(three, k)), k
+    assert one.summary["emitters"] == three.summary["emitters"]
+
+
 @pytest.mark.parametrize("case", ["dark", "clipped", "no photos", "one frame", "no colours"])
 def test_bad_input_says_what_it_assumed(case, caplog):
     v, f, colors = open_room()
