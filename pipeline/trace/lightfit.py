@@ -492,8 +492,9 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
     known_lights : ``(corners (4, 3) metres, radiance (3,) linear, photo units)`` rectangles that are
         known to emit (``trace.lights_file``): added to the room as lights of that radiance; the fit
         then explains only what they leave unexplained
-    threads : threads that trace the fit's shadow rays (the result does not depend on it): more than one
-        where nothing else runs beside the fit (the trace stage's plan)
+    threads : threads for the fit's shadow rays and its independent level searches (the result does not
+        depend on it; BLAS is left as the caller set it): more than one where nothing else runs beside the
+        fit (the trace stage's plan)
 
     Returns
     -------
@@ -510,7 +511,7 @@ def fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray 
 def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None, frames, *,
                      up: np.ndarray, rng: np.random.Generator, settings: FitSettings, name: str, known_lights,
                      pool: ThreadPoolExecutor | None) -> RoomLights:
-    """:func:`fit_room_lights`, its shadow rays on ``pool``'s threads (None: this one)."""
+    """:func:`fit_room_lights`, its shadow rays and level searches on ``pool``'s threads (None: this one)."""
     from pipeline.camera import Camera
     from pipeline.trace.intersect import EmbreeIntersector
 
