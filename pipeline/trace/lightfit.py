@@ -51,7 +51,7 @@ White balance comes from the same fit: each channel is fitted on its own, so the
 that explains several surfaces under one light, and the objects' own colours are lit in the photo's
 colour space; no grey-world assumption is made.
 
-Cost (640x480, 24 photos, 8000 points): under 10 CPU seconds; computed once per scan and kept in
+Cost (640x480, 24 photos, 8000 points): about 10 CPU seconds; computed once per scan and kept in
 ``RUN/trace/<scene>/lights.npz``.
 """
 
