@@ -228,7 +228,8 @@ def _terminate_workers(pool: cf.ProcessPoolExecutor) -> None:
         p.join(timeout=10)
 
 
-def _workers(cfg: Config) -> int:
+def worker_count(cfg: Config) -> int:
+    """Worker processes a stage runs on (``run.workers``; 0 = one per core)."""
     n = cfg.run.workers
     return (os.cpu_count() or 1) if n == 0 else n
 
@@ -284,7 +285,7 @@ def run_stage(run_dir: Path, cfg: Config, stage: Stage,
             on_progress(finished, report.total, time.perf_counter() - t0)
 
     cfg_dict = config_to_dict(cfg)
-    n_workers = min(_workers(cfg), max(1, len(todo)))
+    n_workers = min(worker_count(cfg), max(1, len(todo)))
     if cfg.run.executor == "ray" and todo:
         for res in _run_on_ray(cfg, str(run_dir), cfg_dict, stage_ref, todo):
             record(*res)

@@ -58,6 +58,7 @@ Cost (640x480, 24 photos, 8000 points): about 10 CPU seconds; computed once per 
 from __future__ import annotations
 
 import functools
+import itertools
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -363,28 +364,34 @@ def _in_order(jobs: list, pool) -> list:
     return list(pool.map(lambda job: job(), jobs))
 
 
+def _fill_columns(out: np.ndarray, samples: int, jobs, pool) -> np.ndarray:
+    """``out[:, c]``: the mean over ``samples`` of each ``(c, job)`` that ``jobs`` yields (a generator that
+    draws its random numbers as it goes, so in order); ``COLUMN_CHUNK`` jobs at a time on ``pool``."""
+    it = iter(jobs)
+    while chunk := list(itertools.islice(it, COLUMN_CHUNK)):
+        for (c, _), g in zip(chunk, _in_order([job for _, job in chunk], pool)):
+            out[:, c] = g.reshape(out.shape[0], samples).mean(axis=1)
+    return out
+
+
 def _quad_columns(isect, P: np.ndarray, N: np.ndarray, quads: np.ndarray, normals: np.ndarray, samples: int,
                   rng: np.random.Generator, eps: float, pool=None) -> np.ndarray:
     """(n, C) irradiance at points ``P`` (normals ``N``) per unit radiance of each one-sided rectangle
     ``quads (C, 4, 3)`` emitting along ``normals (C, 3)``: ``samples`` area samples per pair, with visibility
     through ``isect``; the shadow rays on ``pool``'s threads if given."""
-    n, C = len(P), len(quads)
-    out = np.zeros((n, C))
+    n = len(P)
     Pi = np.repeat(P, samples, axis=0)
     Ni = np.repeat(N, samples, axis=0)
-    for c0 in range(0, C, COLUMN_CHUNK):
-        jobs = []
-        for c in range(c0, min(C, c0 + COLUMN_CHUNK)):
-            q = quads[c]
+
+    def jobs():
+        for c, q in enumerate(quads):
             a, b = q[1] - q[0], q[3] - q[0]
-            area = float(_quad_area(q)[0])
             r = rng.random((2, n * samples))
             lp = q[0] + r[0][:, None] * a + r[1][:, None] * b
-            jobs.append(functools.partial(_sampled_irradiance, isect, Pi, Ni, lp,
-                                          np.broadcast_to(normals[c], lp.shape), area, eps))
-        for c, g in enumerate(_in_order(jobs, pool), start=c0):
-            out[:, c] = g.reshape(n, samples).mean(axis=1)
-    return out
+            yield c, functools.partial(_sampled_irradiance, isect, Pi, Ni, lp,
+                                       np.broadcast_to(normals[c], lp.shape), float(_quad_area(q)[0]), eps)
+
+    return _fill_columns(np.zeros((n, len(quads))), samples, jobs(), pool)
 
 
 def _lamp_candidates(isect, cells: np.ndarray, BV: np.ndarray, bnrm: np.ndarray, upv: np.ndarray, size: float,
@@ -716,11 +723,9 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     S = st.emitter_samples
     Pi = np.repeat(P, S, axis=0)
     Ni = np.repeat(N, S, axis=0)
-    sources = el_tris + known_tris
-    for k0 in range(0, len(sources), COLUMN_CHUNK):
-        jobs, ks = [], []
-        for k in range(k0, min(len(sources), k0 + COLUMN_CHUNK)):
-            tris = sources[k]
+
+    def jobs():
+        for k, tris in enumerate(el_tris + known_tris):
             ar = tarea[tris]
             tot = float(ar.sum())
             if tot <= 0:
@@ -731,11 +736,10 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             q = p_[pick]
             lp = (1 - s1)[:, None] * q[:, 0] + (s1 * (1 - r2))[:, None] * q[:, 1] + (s1 * r2)[:, None] * q[:, 2]
             # a clipped mesh region (or a known light) lights both ways
-            jobs.append(functools.partial(_sampled_irradiance, isect, Pi, Ni, lp, tn[pick], tot, eps,
-                                          two_sided=box_unknown.size <= k < K))
-            ks.append(k)
-        for k, g in zip(ks, _in_order(jobs, pool)):
-            A[:, k] = g.reshape(n, S).mean(axis=1)
+            yield k, functools.partial(_sampled_irradiance, isect, Pi, Ni, lp, tn[pick], tot, eps,
+                                       two_sided=box_unknown.size <= k < K)
+
+    _fill_columns(A, S, jobs(), pool)
     if kq:   # the known lights' irradiance joins the known part
         Ek = Ek + A[:, K:] @ k_rad
     A = np.ascontiguousarray(A[:, :K])
@@ -971,7 +975,6 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         summary["stage1_residuals"] = [round(float(r), 3) for r in res_curve @ LUMINANCE_F64]
         (e, Lu, E), rho, _ = fit_at(level1, iters=3, rows=srows)
         best_level = level1
-        stage2 = False
         if st.max_emitters > 0:
             # 2. few emitters: only the cells carrying support_share of that power (and the clipped regions)
             # may emit; every other unseen cell only reflects. With the emitters pinned the light the room's
@@ -986,7 +989,6 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                                            for lv in ALBEDO_LEVELS], pool))
                 best_level = np.asarray(ALBEDO_LEVELS)[np.argmin(res2, axis=0)]
                 (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0)
-                stage2 = True
                 summary["stage1_level"] = [float(x) for x in level1]
                 summary["level_residuals_rgb"] = (res2 / res2.min(axis=0)).round(4).T.tolist()
                 summary["support_cells"] = int(sup.size)
@@ -997,7 +999,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                         summary["stage2_residual"] = round(float(obj2 @ LUMINANCE_F64), 3)
                         summary["stage3_residual"] = round(float(lamps[-1] @ LUMINANCE_F64), 3)
                         e, Lu, E, rho, lamp_q, lamp_n, lamp_e, best_level, res_curve, _ = lamps
-        if not stage2 and len(srows) < n:   # stage 1's answer, fitted to all the points
+        if len(E) < n:   # no second stage: stage 1's answer, fitted to all the points
             (e, Lu, E), rho, _ = fit_at(level1, iters=3)
         best_level = [float(x) for x in best_level]
         res_curve = (res_curve @ LUMINANCE_F64).tolist()

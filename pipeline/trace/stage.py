@@ -36,7 +36,7 @@ from pipeline.io import atomic_save_npz, load_npz
 from pipeline.runfolder import (DROP_TPATH, FRAMES_TPATH, SCAN_TPATH, TRACE_TPATH, FrameKey, RasterFrame,
                                 file_stamp, load_objects, load_raster_frame, load_scan, path, raster_frames,
                                 room_trace_mesh)
-from pipeline.runner import Item, Stage, StageContext
+from pipeline.runner import Item, Stage, StageContext, worker_count
 from pipeline.scanformats.common import read_color
 from pipeline.threads import one_blas_thread
 
@@ -74,7 +74,7 @@ def plan(ctx: StageContext) -> list[Item]:
         # else runs meanwhile: its shadow rays and level searches take as many threads as the run has
         # workers (the same bytes on any number; BLAS stays on one thread per product, whose rounding
         # would change with more)
-        threads = min(ctx.cfg.run.workers or os.cpu_count() or 1, os.cpu_count() or 1)
+        threads = min(worker_count(ctx.cfg), os.cpu_count() or 1)
         for scene in sorted({sc for sc, _ in drops}):
             try:
                 with one_blas_thread():
