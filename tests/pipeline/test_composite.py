@@ -426,3 +426,27 @@ def test_stage_scales_the_objects_by_the_traced_exposure_in_full_mode_only(tmp_p
         assert res_e["exposure"] == 1.0 and np.array_equal(with_e, none)
     else:
         assert res_e["exposure"] == 0.5 and with_e[inner].mean() < 0.85 * none[inner].mean()
+
+
+def test_contact_line_one_pixel_wide_keeps_its_strength_at_partly_covered_edge_pixels():
+    # The dark line where an object meets the table is about a pixel wide and lies right at the object's
+    # edge, where the pixels are partly covered. Their uncovered share shows the traced ratio there
+    # (outside the label mask), or the nearest traced ratio (inside it, where the tracer wrote none),
+    # not the mean of a wider window that reaches the unshadowed room (against Mitsuba, the light suite's
+    # contact lines came out 25-35 gray levels too bright that way).
+    photo = np.full((H, W, 3), 180, np.uint8)
+    pbr, cov, labels, _ = _frame(colour=(0.3, 0.3, 0.3))
+    yy, xx = np.mgrid[0:H, 0:W]
+    ring = (labels == 0) & (np.hypot(xx - 40.0, yy - 30.0) < 13.5)   # the first unlabelled pixels around the disk
+    sr = np.where(ring, np.float32(0.1), np.float32(1.0))
+    res = _full(photo, pbr, cov, sr, labels)
+    bg = float(color.decode_u8(np.array([180], np.uint8))[0])
+
+    def expected(ratio):
+        return color.encode_u8((0.3 * cov + (1 - cov) * bg * ratio).astype(np.float32))
+
+    out_edge = ring & (cov > 0.05)               # partly covered, unlabelled: the traced ratio itself
+    in_edge = (labels > 0) & (cov < 0.95)        # partly covered, labelled: filled from the ring beside them
+    assert out_edge.sum() > 10 and in_edge.sum() > 10
+    assert (np.abs(res.image[out_edge][:, 0].astype(int) - expected(0.1)[out_edge]) <= 1).all()
+    assert (np.abs(res.image[in_edge][:, 0].astype(int) - expected(0.1)[in_edge]) <= 2).all()
