@@ -225,6 +225,10 @@ class TraceConfig:
     shadow_min_effect: float = option(0.04, "shadow ratio traced only where objects can change the light by "
                                       "more than this share (a loose bound: on 7-Scenes the true change left "
                                       "out at 0.04 has p99 0.8 %)", min=0.0, min_exclusive=True, max=1.0)
+    object_shadows: int = option(1, "fit lighting: light samples per room point that an object's path meets "
+                                 "near the objects, to take the objects' shadows out of the light the room sends "
+                                 "them (the photos show the room without them); 0 = the room as photographed",
+                                 min=0)
     shadow_stride: int = option(2, "shadow ratio traced on every n-th pixel in x and y away from the objects "
                                 "(every pixel within 3 px of them), then interpolated", min=1)
     shadow_smooth: float = option(1.0, "Gaussian smoothing of the shadow ratio away from the objects (sigma, "

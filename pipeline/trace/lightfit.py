@@ -44,8 +44,10 @@ Yu et al., "Inverse Global Illumination" (SIGGRAPH 1999), reduced to what a CPU 
    within 1.3 dB across run seeds at about the cost of 4000 everywhere (within up to 1.5 dB; 2000: 7 dB).
 5. **Result.** :class:`RoomLights`: the mesh plus the box with a linear radiance per vertex (the mesh's
    colours, fitted radiance on emitters and unseen cells) and the triangles to sample as lights
-   (emitters with a visible share of the power; the lamps join the mesh as small one-sided rectangles).
-   The trace stage lights and shadows the objects with it.
+   (emitters with a visible share of the power; the lamps join the mesh as small one-sided rectangles),
+   and the albedo the fit found per vertex (a mesh vertex takes its nearest fit point's, on a surface
+   facing the same way; the rest the level). The trace stage lights and shadows the objects with it, and
+   takes the objects' shadows out of the room's light they see with the albedo.
 
 White balance comes from the same fit: each channel is fitted on its own, so the emitters get the colour
 that explains several surfaces under one light, and the objects' own colours are lit in the photo's
@@ -118,6 +120,7 @@ class RoomLights:
     num_mesh_vertices: int
     num_mesh_tris: int
     summary: dict = field(default_factory=dict)   # what was fitted and assumed (JSON-able)
+    albedo: np.ndarray | None = None   # (V, 3) float32 linear albedo the fit found (None: not fitted)
 
     def save(self, path) -> None:
         from pipeline.io import atomic_save_npz
@@ -125,6 +128,7 @@ class RoomLights:
 
         keep = {k: v for k, v in self.summary.items() if k != "seconds"}   # same seed, same bytes: no timings
         atomic_save_npz(path, vertices=self.vertices, faces=self.faces, radiance=self.radiance,
+                        albedo=(np.zeros_like(self.radiance) if self.albedo is None else self.albedo),
                         light_tri=self.light_tri, num_mesh_vertices=np.int64(self.num_mesh_vertices),
                         num_mesh_tris=np.int64(self.num_mesh_tris),
                         summary=np.frombuffer(json.dumps(keep, sort_keys=True).encode(), np.uint8))
@@ -139,7 +143,8 @@ class RoomLights:
         return RoomLights(vertices=z["vertices"], faces=z["faces"], radiance=z["radiance"],
                           light_tri=z["light_tri"].astype(bool), num_mesh_vertices=int(z["num_mesh_vertices"]),
                           num_mesh_tris=int(z["num_mesh_tris"]),
-                          summary=json.loads(bytes(z["summary"]).decode()))
+                          summary=json.loads(bytes(z["summary"]).decode()),
+                          albedo=z["albedo"])   # a file without (an earlier version's): KeyError, fitted again
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -316,6 +321,44 @@ def _sliver_rule(norms: np.ndarray, expected: np.ndarray, med: float) -> tuple[n
     fitted at all. Returns (fitted?, price)."""
     expected = np.asarray(expected, np.float64)
     return norms >= 0.02 * expected, np.maximum(norms, expected) / max(med, 1e-12)
+
+
+def _patch_keys(P: np.ndarray, N: np.ndarray, cell: float) -> np.ndarray:
+    """(n, 4) int64 albedo patch of points ``P`` with normals ``N``: their cell of ``cell`` metres and their
+    normal's dominant axis and sign."""
+    ax = np.argmax(np.abs(N), axis=1)
+    side = N[np.arange(len(N)), ax] > 0
+    return np.concatenate([np.floor(P / cell).astype(np.int64), (ax * 2 + side)[:, None]], axis=1)
+
+
+def _vertex_albedo(V: np.ndarray, F: np.ndarray, P: np.ndarray, N: np.ndarray, rho_p: np.ndarray,
+                   level: np.ndarray, reach: float, k: int = 8) -> np.ndarray:
+    """(V, 3) albedo of the mesh's vertices: that of the nearest fit point ``P`` (normals ``N``, albedo
+    ``rho_p (n, 3)``) within ``reach`` metres on a surface facing the same way (the vertex's area-weighted
+    normal within 60 degrees, either way round: a mesh's winding need not face the cameras); ``level (3,)``
+    where there is none (no photo saw it). Nearest, not by patch key: a vertex on a patch's boundary plane
+    (a wall's own plane) falls in the next cell, which its surface's points do not."""
+    from scipy.spatial import cKDTree
+
+    out = np.tile(np.asarray(level, np.float64), (len(V), 1))
+    if len(V) == 0 or len(F) == 0 or len(P) == 0:
+        return out
+    p = V[F]
+    fn = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    vn = np.zeros_like(V)
+    for j in range(3):
+        np.add.at(vn, F[:, j], fn)
+    vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
+    k = min(k, len(P))
+    dist, nb = cKDTree(P).query(V, k=k, distance_upper_bound=reach)
+    dist, nb = dist.reshape(len(V), k), nb.reshape(len(V), k)
+    ok = np.isfinite(dist)
+    cos = np.abs(np.einsum("vkj,vj->vk", N[np.minimum(nb, len(P) - 1)], vn))
+    ok &= cos > 0.5
+    first = np.argmax(ok, axis=1)
+    has = ok[np.arange(len(V)), first]
+    out[has] = rho_p[nb[has, first[has]]]
+    return out
 
 
 def _unit_normal(quad: np.ndarray) -> np.ndarray:
@@ -783,9 +826,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         return np.linalg.inv(np.eye(K) - rho_u(level_c)[:, None] * G)
 
     # albedo patches: cells of albedo_cell metres x the dominant normal axis
-    keyp = np.concatenate([np.floor(P / st.albedo_cell).astype(np.int64),
-                           (np.argmax(np.abs(N), axis=1) * 2 + (N[np.arange(n), np.argmax(np.abs(N), axis=1)] > 0))[:, None]],
-                          axis=1)
+    keyp = _patch_keys(P, N, st.albedo_cell)
     _, patch = np.unique(keyp, axis=0, return_inverse=True)
     patch = patch.ravel()
     npatch = int(patch.max()) + 1
@@ -1051,5 +1092,12 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                    seconds=round(time.process_time() - t0, 2))
     log.info("light fit of %s: %d points, %d unknowns, albedo level %s, %d emitters sampled, residual %.3f, %.1f s",
              name, n, K, best_level, len(emitters), summary["residual_median"], summary["seconds"])
+    # the albedo the fit found, per vertex (the trace stage takes the objects' shadows out of the room's
+    # light with it): the mesh's by patch, the box's at the level (as its unseen cells reflect here)
+    lvl = np.full(3, 0.5) if best_level is None else np.asarray(best_level, np.float64)
+    albedo = np.zeros((len(AVo), 3))
+    albedo[:nv] = _vertex_albedo(V, F, P, N, rho[patch], lvl, st.albedo_cell)
+    albedo[nv:nv + len(BV)] = lvl
     return RoomLights(vertices=AVo, faces=AFo, radiance=rad.astype(np.float32), light_tri=light_tri,
-                      num_mesh_vertices=nv, num_mesh_tris=nt, summary=summary)
+                      num_mesh_vertices=nv, num_mesh_tris=nt, summary=summary,
+                      albedo=np.clip(albedo, 0.0, 1.0).astype(np.float32))

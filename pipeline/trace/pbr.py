@@ -11,6 +11,11 @@ up to ``max_depth`` scattering events with Russian roulette from ``rr_depth`` on
 samples a pixel stops once the standard error of its mean luminance is below ``noise_target`` times
 its mean (with a floor for dark pixels), or at ``spp``.
 
+The room's radiance comes from photos taken without the objects. In the fit lighting, where the fit also
+gives the room's albedo, an object path that meets the room near the objects sees it less the direct
+light the objects block there (:func:`shadowed_room_radiance`, ``trace.object_shadows``), so an object's
+underside is not lit by the bright table its own shadow darkens.
+
 Output radiance is linear and premultiplied by coverage (a half-covered edge pixel holds half the
 object's radiance), ready for ``out = pbr + (1 - coverage) * background``.
 """
@@ -201,6 +206,7 @@ class PathOptions:
     ao_samples: int = 0           # AO rays per first hit
     ao_distance: float = 0.3      # metres
     cover_from: int = 1           # ``covered``: the first hit's tri_inst is at least this
+    object_shadows: "ObjectShadows | None" = None   # the objects' shadows taken out of the room they see
 
 
 def _emission(scene: TraceScene, prim: np.ndarray, u: np.ndarray, v: np.ndarray, dirs: np.ndarray,
@@ -432,12 +438,98 @@ def trace_paths(scene: TraceScene, camera: Camera, pixels: np.ndarray, draws: Pa
         if em.size:
             pe = h.prim[em]
             Le = _emission(scene, pe, h.u[em], h.v[em], wi[em], opts.one_sided)
+            if opts.object_shadows is not None:
+                Le = shadowed_room_radiance(scene, opts.object_shadows, org[em], wi[em], h.t[em], pe, h.u[em],
+                                            h.v[em], Le, draws.rng, eps)
             w = emission_mis_weight(scene, pe, h.t[em], wi[em], pdf[em])
             add_rows(L, idx[em], beta[em] * Le * w[:, None])
         sc = hk[scene.tri_scatters[prim]]
         idx, beta, wi = idx[sc], beta[sc], wi[sc]
         s = interact(scene, Hits(t=h.t[sc], prim=h.prim[sc], u=h.u[sc], v=h.v[sc]), wi)
         wo = -wi
+    return out
+
+
+@dataclass(frozen=True)
+class ObjectShadows:
+    """What :func:`shadowed_room_radiance` needs: the room and the objects as separate occluders, the
+    objects' bounding spheres and the light samples per room point (see :func:`object_shadows`)."""
+
+    room: object             # Intersector of the room alone
+    objects: object          # Intersector of the objects alone
+    centres: np.ndarray      # (N, 3) float64 bounding-sphere centres of the instances
+    radii: np.ndarray        # (N,) float64
+    samples: int             # light samples per room point
+    min_effect: float        # room points where (r / d)^2 >= this for some object are corrected
+
+
+def object_shadows(scene: TraceScene, room_isect, obj_isect, *, samples: int,
+                   min_effect: float) -> ObjectShadows | None:
+    """:class:`ObjectShadows` of a scene, or None where there is nothing to correct (no samples, no objects,
+    no area lights, or a room without albedo: the room reflects nothing the tracer knows of)."""
+    from pipeline.trace.shadow import instance_spheres
+
+    nrv = int(scene.faces[:scene.num_room_tris].max()) + 1 if scene.num_room_tris else 0
+    if (samples <= 0 or scene.num_instances == 0 or not scene.area_lights.count
+            or not np.any(scene.albedo[:nrv] > 0)):
+        return None
+    c, r = instance_spheres(scene)
+    return ObjectShadows(room=room_isect, objects=obj_isect, centres=c, radii=r, samples=int(samples),
+                         min_effect=float(min_effect))
+
+
+def shadowed_room_radiance(scene: TraceScene, sh: ObjectShadows, org: np.ndarray, wi: np.ndarray,
+                           t: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray, Le: np.ndarray,
+                           rng: np.random.Generator, eps: float) -> np.ndarray:
+    """The room's radiance ``Le (R, 3)`` at the hits of object paths, less the light the objects keep off it.
+
+    The room's radiance comes from photos taken without the objects: a table point beside an object is
+    as bright as the photo shows it, though the object now shades it, and the object's underside, which
+    sees mostly that point, came out too bright (against Mitsuba, its lowest two pixel rows by 7-9 gray
+    levels, 2.5x in the light suite's spot room). Where an object can matter (``(r / d)^2 >= min_effect``
+    for one of the bounding spheres) and the room point is no light, ``sh.samples`` points on the area
+    lights estimate the direct light the objects block there (a shadow ray that the objects stop and the
+    room alone does not), and the point's diffuse reflection of it, ``albedo / pi x blocked``, is taken
+    away (at least 0). The albedo is the light fit's (:class:`pipeline.trace.lightfit.RoomLights`); the
+    light the objects themselves send to the point is left out.
+    """
+    room = (scene.tri_inst[prim] == 0) & (scene.area_lights.prob_of_tri[prim] == 0)
+    sel = np.flatnonzero(room)
+    if sel.size == 0:
+        return Le
+    x = org[sel].astype(np.float64) + t[sel, None].astype(np.float64) * wi[sel]
+    d = np.linalg.norm(x[:, None, :] - sh.centres[None], axis=2)
+    near = ((sh.radii[None] / np.maximum(d, 1e-9)) ** 2 >= sh.min_effect).any(axis=1)
+    sel, x = sel[near], x[near]
+    if sel.size == 0:
+        return Le
+    f = scene.faces[prim[sel]]
+    uu, vv = u[sel, None], v[sel, None]
+    A = scene.albedo
+    rho = (1 - uu - vv) * A[f[:, 0]] + uu * A[f[:, 1]] + vv * A[f[:, 2]]
+    ng = scene.tri_normal[prim[sel]].astype(np.float64)
+    ng = np.where((_dot(ng, wi[sel]) > 0)[:, None], -ng, ng)
+    m = sh.samples
+    pr = np.repeat(np.arange(sel.size), m)
+    draws = rng.random((3, pr.size))
+    wl, dist, Ll, cos_l, pA = light_sample(scene, x[pr], draws[0], draws[1], draws[2], one_sided=False)
+    cos_p = _dot(wl, ng[pr])
+    ok = np.flatnonzero((cos_p > 0) & (cos_l > 1e-6) & (dist > 4 * eps))
+    if ok.size:
+        wl32 = wl[ok].astype(np.float32)
+        o2 = offset_origins(x[pr[ok]].astype(np.float32), ng[pr[ok]].astype(np.float32), wl32, eps)
+        tmax = (dist[ok] - 2 * eps).astype(np.float32)
+        blocked = sh.objects.occluded(o2, wl32, tmax)
+        ok, o2, wl32, tmax = ok[blocked], o2[blocked], wl32[blocked], tmax[blocked]
+        if ok.size:
+            ok = ok[~sh.room.occluded(o2, wl32, tmax)]
+    if ok.size == 0:
+        return Le
+    e = Ll[ok] * (cos_p[ok] * cos_l[ok] / (pA[ok] * dist[ok] ** 2 * m))[:, None]
+    lost = np.zeros((sel.size, 3))
+    add_rows(lost, pr[ok], e)
+    out = np.array(Le, np.float32)
+    out[sel] = np.maximum(out[sel] - (rho / np.pi * lost).astype(np.float32), 0.0)
     return out
 
 
@@ -482,8 +574,11 @@ def ambient_occlusion(intersector, p: np.ndarray, ng: np.ndarray, ns: np.ndarray
 
 
 def render(scene: TraceScene, camera: Camera, mask: np.ndarray, settings: RenderSettings,
-           rng: np.random.Generator) -> FrameBuffers:
-    """Render the pixels in ``mask (H, W) bool`` with adaptive sampling; see the module docstring."""
+           rng: np.random.Generator, object_shadows: ObjectShadows | None = None) -> FrameBuffers:
+    """Render the pixels in ``mask (H, W) bool`` with adaptive sampling; see the module docstring.
+
+    ``object_shadows``: take the objects' shadows out of the room's light the objects see
+    (:func:`shadowed_room_radiance`); None = the room as photographed."""
     H, W = camera.height, camera.width
     if mask.shape != (H, W):
         raise ValueError(f"mask shape {mask.shape} does not match the camera's {(H, W)}")
@@ -502,7 +597,8 @@ def render(scene: TraceScene, camera: Camera, mask: np.ndarray, settings: Render
     done = 0
     draws = PathDraws(rng)
     opts = PathOptions(max_depth=settings.max_depth, rr_depth=settings.rr_depth, ray_eps=settings.ray_eps,
-                       ao_samples=settings.ao_samples, ao_distance=settings.ao_distance)
+                       ao_samples=settings.ao_samples, ao_distance=settings.ao_distance,
+                       object_shadows=object_shadows)
     while active.size and done < settings.spp:
         b = min(settings.spp_batch, settings.spp - done)
         loc = np.repeat(active, b)

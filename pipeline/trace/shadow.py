@@ -48,6 +48,8 @@ E0_SMOOTH_PX = 4.0        # Gaussian sigma (pixels) of the light arriving withou
 
 def instance_spheres(scene: TraceScene) -> tuple[np.ndarray, np.ndarray]:
     """Bounding spheres of the object instances: centres (N, 3) and radii (N,) (bounding-box based)."""
+    if scene.spheres is not None:   # kept by build_scene
+        return scene.spheres
     n = scene.num_instances
     c = np.zeros((n, 3))
     r = np.zeros(n)

@@ -114,7 +114,7 @@ def trace_frame(ctx: StageContext, scene, rf: RasterFrame, labels: np.ndarray, *
     """
     from pipeline.seeding import item_rng
     from pipeline.trace.denoise import denoise, denoise_ao
-    from pipeline.trace.pbr import render, trace_mask
+    from pipeline.trace.pbr import object_shadows, render, trace_mask
     from pipeline.trace.shadow import shadow_ratio
 
     cfg = ctx.cfg.trace
@@ -124,7 +124,9 @@ def trace_frame(ctx: StageContext, scene, rf: RasterFrame, labels: np.ndarray, *
                          f"in its JSON; re-run raster")
     rng = item_rng(ctx.cfg.run.seed, ctx.stage, str(rf.key))
     mask = trace_mask(labels, cfg.edge_band)
-    fb = render(scene, cam, mask, settings_from_config(cfg), rng)
+    osh = (object_shadows(scene, room_isect, obj_isect, samples=cfg.object_shadows, min_effect=cfg.shadow_min_effect)
+           if cfg.lighting == "fit" and room_isect is not None else None)
+    fb = render(scene, cam, mask, settings_from_config(cfg), rng, object_shadows=osh)
     pbr, ao = fb.pbr, fb.ao
     if cfg.denoise != "off":
         pbr = denoise(fb.pbr, fb.albedo, fb.normal, fb.coverage > 0, method=cfg.denoise)
@@ -253,7 +255,7 @@ def _run_item(ctx: StageContext, item: Item) -> dict:
                                 light_gain=cfg.light_gain, env_radiance=env,
                                 published_power=cfg.published_power, up=scan.up_w,
                                 light_vertices=light_v, env_map=env_map)
-            if cfg.shadow_samples > 0:
+            if cfg.shadow_samples > 0 or (cfg.lighting == "fit" and cfg.object_shadows > 0):
                 split = split_intersectors(scene)
         exposure = 1.0
         if cfg.lighting in ("scan", "fit") and frame < scan.num_frames and scan.color_paths[frame]:

@@ -140,7 +140,39 @@ def test_save_load_round_trip(tmp_path):
     rl.save(tmp_path / "lights.npz")
     back = RoomLights.load(tmp_path / "lights.npz")
     assert np.array_equal(back.radiance, rl.radiance) and np.array_equal(back.light_tri, rl.light_tri)
+    assert back.albedo is not None and np.array_equal(back.albedo, rl.albedo)
     assert back.summary == {k: v for k, v in rl.summary.items() if k != "seconds"}   # no timings on disk
+
+
+def test_fitted_albedo_reaches_the_mesh_vertices(tmp_path):
+    """A floor painted darker than the walls under one light: the albedo the fit hands the tracer (per
+    vertex) is darker on the floor, within the plausible range, and a lights file without it (an earlier
+    version's) is not read as a fit."""
+    v, f, _ = open_room()
+    floor_v = v[:, 2] < 0.01
+    colors = np.where(floor_v[:, None], 70, 160).astype(np.uint8).repeat(3, axis=1)
+    fr, seen = [], np.zeros(len(v), bool)
+    for (_, Kf, T), ids in zip(frames(6, 0), render_ids(v, f, frames(6, 0))):
+        seen[f[ids[ids >= 0]].ravel()] = True
+        val = np.where(ids >= 0, colors[f[np.maximum(ids, 0)], 0].mean(axis=-1), 0).round().astype(np.uint8)
+        fr.append((np.repeat(val[..., None], 3, axis=2), Kf, T))
+    rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(2),
+                         settings=FitSettings(points=1500, stride=2, cell=0.5, refine=0.0))
+    assert rl.summary["fitted"], rl.summary["note"]
+    alb = rl.albedo[:len(v)].mean(axis=1)
+    inner_floor = seen & floor_v & (np.abs(v[:, 0]) < 1.5) & (np.abs(v[:, 1]) < 1.5)
+    mid_wall = seen & (v[:, 2] > 0.6) & (v[:, 2] < 1.9) & (np.abs(np.abs(v[:, :2]).max(axis=1) - 2) < 1e-6)
+    assert inner_floor.sum() >= 4 and mid_wall.sum() >= 8
+    # sRGB 70 vs 160 is a linear ratio of 0.17 (each patch's albedo is drawn toward the room's level, and the
+    # light on floor and walls differs): the floor's albedo at most 0.6 x the walls' where the photos saw them
+    assert alb[inner_floor].mean() < 0.6 * alb[mid_wall].mean(), (alb[inner_floor], alb[mid_wall])
+    assert np.all(rl.albedo >= 0.0) and np.all(rl.albedo[:len(v)] <= 0.95)
+    rl.save(tmp_path / "lights.npz")
+    z = dict(np.load(tmp_path / "lights.npz"))
+    del z["albedo"]
+    np.savez(tmp_path / "old.npz", **z)
+    with pytest.raises(KeyError):
+        RoomLights.load(tmp_path / "old.npz")
 
 
 def render_ids(v, f, fr):

@@ -548,3 +548,87 @@ def test_frame_exposure_is_one_for_too_few_room_pixels_and_clamped():
     assert frame_exposure(dim, cam, np.full((36, 48, 3), 240, np.uint8)) == EXPOSURE_RANGE[1]
     assert frame_exposure(sc, cam, np.full((10, 10, 3), 128, np.uint8)) == 1.0   # not the camera's size
     assert frame_exposure(build_scene(*EMPTY, [sphere_object()]), cam, np.full((36, 48, 3), 128, np.uint8)) == 1.0
+
+
+# --------------------------------------------------------------------------------------------------
+# The objects' shadows taken out of the room's light the objects see (fit lighting)
+# --------------------------------------------------------------------------------------------------
+
+def _shadow_scene(albedo: float = 0.5, roof: bool = False):
+    """A 4 m floor (radiance 0.3, albedo ``albedo``), a 10 cm light 1 m above it (radiance 100, facing
+    down), a 20 cm cube 0.1-0.3 m above the floor under the light; ``roof``: a room plate at 0.6 m over the
+    floor's -x half, to x = 0 (it hides the light from x < -0.01)."""
+    from pipeline.trace.lightfit import RoomLights
+
+    fv, ff = grid_quad((0, 0, 0), (2, 0, 0), (0, 2, 0), 8)
+    lv, lf = quad((0, 0, 1.0), (0.05, 0, 0), (0, -0.05, 0))            # normal -z
+    parts = [(fv, ff, 0.3, albedo, False), (lv, lf, 100.0, 0.0, True)]
+    if roof:
+        rv_, rf_ = quad((-0.95, 0, 0.6), (0.95, 0, 0), (0, 0.95, 0))
+        parts.append((rv_, rf_, 0.3, albedo, False))
+    V, F, rad, alb, lt, off = [], [], [], [], [], 0
+    for v, f, r, a, light in parts:
+        V.append(v)
+        F.append(f + off)
+        rad.append(np.full((len(v), 3), r, np.float32))
+        alb.append(np.full((len(v), 3), a, np.float32))
+        lt.append(np.full(len(f), light))
+        off += len(v)
+    rl = RoomLights(vertices=np.concatenate(V).astype(np.float32), faces=np.concatenate(F).astype(np.int32),
+                    radiance=np.concatenate(rad), light_tri=np.concatenate(lt), num_mesh_vertices=off,
+                    num_mesh_tris=sum(len(f) for f in F), albedo=np.concatenate(alb))
+    bv, bf = box_room((-0.1, -0.1, 0.1), (0.1, 0.1, 0.3), n=2)
+    bf = bf[:, ::-1]                                                      # outward
+    cube = ObjectInstance(vertices=bv, faces=bf, normals=np.zeros_like(bv) + [0, 0, 1],
+                          albedo=np.full((len(bv), 3), 0.5, np.float32))
+    return build_scene(np.zeros((0, 3)), np.zeros((0, 3), np.int32), None, [cube], lighting="fit", room_lights=rl)
+
+
+def _room_seen_from_above(scene, points, samples=256, seed=0):
+    """What object paths arriving straight down at floor ``points (n, 3)`` see there."""
+    from pipeline.trace.pbr import _emission, object_shadows, shadowed_room_radiance
+    from pipeline.trace.shadow import split_intersectors
+
+    ri, oi = split_intersectors(scene)
+    sh = object_shadows(scene, ri, oi, samples=samples, min_effect=0.01)
+    n = len(points)
+    org = (np.asarray(points, np.float32) + [0, 0, 0.05]).astype(np.float32)
+    wi = np.tile(np.float32([0, 0, -1]), (n, 1))
+    h = scene.intersector.intersect(org, wi)
+    assert h.hit.all() and (scene.tri_inst[h.prim] == 0).all()
+    Le = _emission(scene, h.prim, h.u, h.v, wi, False)
+    return Le, shadowed_room_radiance(scene, sh, org, wi, h.t, h.prim, h.u, h.v, Le,
+                                      np.random.default_rng(seed), 1e-4)
+
+
+def test_room_point_under_an_object_loses_the_direct_light_it_blocks():
+    scene = _shadow_scene()
+    # under the cube (the light hidden) and 0.5 m aside (the light seen past the cube, within its reach)
+    Le, out = _room_seen_from_above(scene, [(0.02, -0.03, 0.0), (0.5, 0.0, 0.0)])
+    assert np.allclose(Le, 0.3)
+    # the light, 1 m straight up, 0.1 x 0.1 m, radiance 100: E = 100 * 0.01 * cos * cos / d^2, analytic
+    # for the point under it (cos = 1, d = 1 within 0.2 %); taken away at albedo / pi
+    E = 100.0 * 0.01 / (1.0 + 0.02 ** 2 + 0.03 ** 2) ** 2
+    assert out[0] == pytest.approx(np.full(3, max(0.3 - 0.5 / np.pi * E, 0.0)), abs=0.01)
+    assert 0.3 - 0.5 / np.pi * E > 0.05          # the test's numbers leave a shadowed point above 0
+    assert np.allclose(out[1], 0.3)              # the cube hides no light from it
+
+
+def test_object_shadow_needs_the_light_to_reach_the_room_and_never_goes_negative():
+    # a point the room itself hides from the light keeps its radiance; a bright albedo clamps at 0
+    scene = _shadow_scene(roof=True)
+    _, out = _room_seen_from_above(scene, [(-0.08, 0.0, 0.0)])
+    assert np.allclose(out, 0.3)                # under the cube, but the roof hides the light anyway
+    scene = _shadow_scene(albedo=5.0)
+    _, out = _room_seen_from_above(scene, [(0.0, 0.0, 0.0)])
+    assert np.all(out >= 0) and np.allclose(out, 0.0)
+
+
+def test_object_shadows_are_off_without_albedo_or_samples():
+    from pipeline.trace.pbr import object_shadows
+    from pipeline.trace.shadow import split_intersectors
+
+    scene = _shadow_scene(albedo=0.0)
+    ri, oi = split_intersectors(scene)
+    assert object_shadows(scene, ri, oi, samples=4, min_effect=0.04) is None
+    assert object_shadows(_shadow_scene(), ri, oi, samples=0, min_effect=0.04) is None
