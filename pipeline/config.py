@@ -209,7 +209,8 @@ class TraceConfig:
                                  "its mean luminance; 0 = always take spp samples", min=0.0)
     max_depth: int = option(3, "scattering events per path (inter-reflections between objects)", min=1)
     edge_band: int = option(1, "pixels traced around the label mask for anti-aliased edges", min=0)
-    ao_samples: int = option(2, "ambient-occlusion rays per camera sample (0 = no AO pass)", min=0)
+    ao_samples: int = option(2, "ambient-occlusion rays per camera sample (0 = no AO pass); traced only for "
+                             "composite.mode = \"published\", the one blend that reads it", min=0)
     ao_distance: float = option(0.25, "ambient occlusion: occluders farther than this do not count, metres",
                                 min=0.0, min_exclusive=True)
     radiance_scale: float = option(1.0, "room radiance = this x the room's linear (decoded sRGB) colours",

@@ -12,7 +12,8 @@ for tracing (``RUN/prep/<scene>/room_trace.ply``, else the ingest room mesh). It
 
 - ``pbr`` (H, W, 3) float32: linear radiance, premultiplied by ``coverage``; 0 outside traced pixels
   (denoised with ``trace.denoise``);
-- ``ao`` (H, W) float32 in [0, 1] (1 outside object pixels; denoised too);
+- ``ao`` (H, W) float32 in [0, 1] (1 outside object pixels; denoised too); traced for
+  ``composite.mode = "published"`` only, its one reader (1 everywhere otherwise: :func:`ao_used`);
 - ``coverage`` (H, W) float32 in [0, 1]: share of the pixel covered by an unoccluded object;
 - ``shadow_ratio`` (H, W) float32: room light with objects / without (1 where unchanged);
 - ``albedo`` (H, W, 3) float32 and ``normal`` (H, W, 3) float32 (camera frame), premultiplied;
@@ -43,13 +44,20 @@ from pipeline.threads import one_blas_thread
 log = logging.getLogger(__name__)
 
 
-def settings_from_config(cfg: TraceConfig):
-    """:class:`~pipeline.trace.pbr.RenderSettings` of a :class:`TraceConfig`."""
+def settings_from_config(cfg: TraceConfig, ao: bool = True):
+    """:class:`~pipeline.trace.pbr.RenderSettings` of a :class:`TraceConfig`; ``ao=False``: no AO pass."""
     from pipeline.trace.pbr import RenderSettings
 
     return RenderSettings(spp=cfg.spp, spp_min=min(cfg.spp_min, cfg.spp), spp_batch=min(4, cfg.spp),
-                          noise_target=cfg.noise_target, max_depth=cfg.max_depth, ao_samples=cfg.ao_samples,
-                          ao_distance=cfg.ao_distance)
+                          noise_target=cfg.noise_target, max_depth=cfg.max_depth,
+                          ao_samples=cfg.ao_samples if ao else 0, ao_distance=cfg.ao_distance)
+
+
+def ao_used(cfg) -> bool:
+    """Whether a run's composite reads the AO pass: only the published blend (PBR x AO) does; the full blend's
+    path-traced radiance holds the objects' self-occlusion already. Elsewhere the pass is not traced (its
+    rays and its denoising were 9 % of a 7-Scenes trace item) and ``ao`` is written as 1."""
+    return cfg.composite.mode == "published"
 
 
 def plan(ctx: StageContext) -> list[Item]:
@@ -126,11 +134,13 @@ def trace_frame(ctx: StageContext, scene, rf: RasterFrame, labels: np.ndarray, *
     mask = trace_mask(labels, cfg.edge_band)
     osh = (object_shadows(scene, room_isect, obj_isect, samples=cfg.object_shadows, min_effect=cfg.shadow_min_effect)
            if cfg.lighting == "fit" and room_isect is not None else None)
-    fb = render(scene, cam, mask, settings_from_config(cfg), rng, object_shadows=osh)
+    with_ao = ao_used(ctx.cfg)
+    fb = render(scene, cam, mask, settings_from_config(cfg, ao=with_ao), rng, object_shadows=osh)
     pbr, ao = fb.pbr, fb.ao
     if cfg.denoise != "off":
         pbr = denoise(fb.pbr, fb.albedo, fb.normal, fb.coverage > 0, method=cfg.denoise)
-        ao = denoise_ao(fb.ao, fb.normal, fb.coverage > 0, method=cfg.denoise)
+        if with_ao:
+            ao = denoise_ao(fb.ao, fb.normal, fb.coverage > 0, method=cfg.denoise)
     sr = (shadow_ratio(scene, cam, labels, rng, samples=cfg.shadow_samples, min_effect=cfg.shadow_min_effect,
                        stride=cfg.shadow_stride, smooth=cfg.shadow_smooth, room_isect=room_isect,
                        obj_isect=obj_isect)

@@ -254,12 +254,18 @@ def test_stage_writes_every_pass_with_the_agreed_names_and_is_deterministic(tmp_
     assert (a["pbr"][~band] == 0).all() and (a["coverage"][~band] == 0).all()
     assert (a["coverage"][labels > 0] > 0.5).mean() > 0.9
     assert a["pbr"][labels > 0].mean() > 0.05 and np.isfinite(a["pbr"]).all()
-    assert 0 <= a["ao"].min() and a["ao"].max() <= 1 and a["ao"][labels > 0].mean() < 1  # floor occludes
+    assert (a["ao"] == 1).all()   # the full blend (the default) does not read the AO pass: not traced
     assert (a["shadow_ratio"][labels > 0] == 1).all() and a["shadow_ratio"].min() < 0.9  # contact shadow
     assert res["object_px"] == int((labels > 0).sum()) and res["rays"] > 0
     first = out.read_bytes()
     STAGE.run_item(ctx, items[0])
     assert out.read_bytes() == first
+    # the published blend (PBR x AO) reads it: traced
+    pub = StageContext(run_dir=run, cfg=build_config({"trace": {"spp": 8, "shadow_samples": 8},
+                                                      "composite": {"mode": "published"}}), stage="trace")
+    STAGE.run_item(pub, items[0])
+    ao = load_npz(out)["ao"]
+    assert 0 <= ao.min() and ao.max() <= 1 and ao[labels > 0].mean() < 1  # the floor occludes
 
 
 def test_stage_prefers_preps_room_trace_mesh(tmp_path):
