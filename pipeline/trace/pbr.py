@@ -35,7 +35,7 @@ from pipeline.trace.intersect import Hits, offset_origins
 from pipeline.trace.lights import sample_area_lights
 from pipeline.trace.sampling import (cosine_hemisphere, frame_to_local, frame_to_world, local_frame,
                                      power_heuristic, to_world)
-from pipeline.trace.scene import TraceScene
+from pipeline.trace.scene import TraceScene, instance_spheres
 
 log = logging.getLogger(__name__)
 
@@ -467,8 +467,6 @@ def object_shadows(scene: TraceScene, room_isect, obj_isect, *, samples: int,
                    min_effect: float) -> ObjectShadows | None:
     """:class:`ObjectShadows` of a scene, or None where there is nothing to correct (no samples, no objects,
     no area lights, or a room without albedo: the room reflects nothing the tracer knows of)."""
-    from pipeline.trace.shadow import instance_spheres
-
     nrv = int(scene.faces[:scene.num_room_tris].max()) + 1 if scene.num_room_tris else 0
     if (samples <= 0 or scene.num_instances == 0 or not scene.area_lights.count
             or not np.any(scene.albedo[:nrv] > 0)):

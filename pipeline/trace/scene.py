@@ -72,6 +72,22 @@ class TraceScene:
         return int(self.metallic.shape[0]) - 1
 
 
+def instance_spheres(scene: TraceScene) -> tuple[np.ndarray, np.ndarray]:
+    """Bounding spheres of the object instances: centres (N, 3) and radii (N,) (bounding-box based)."""
+    if scene.spheres is not None:   # kept by build_scene
+        return scene.spheres
+    n = scene.num_instances
+    c = np.zeros((n, 3))
+    r = np.zeros(n)
+    for k in range(n):
+        v = scene.vertices[np.unique(scene.faces[scene.tri_inst == k + 1])]
+        if len(v):
+            lo, hi = v.min(axis=0), v.max(axis=0)
+            c[k] = 0.5 * (lo + hi)
+            r[k] = 0.5 * np.linalg.norm(hi - lo)
+    return c, r
+
+
 @dataclass(frozen=True)
 class ObjectInstance:
     """One placed object: its mesh in world coordinates and its material."""

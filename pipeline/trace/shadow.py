@@ -37,29 +37,13 @@ from pipeline.color import LUMINANCE_F64
 from pipeline.trace.intersect import EmbreeIntersector, Intersector, offset_origins
 from pipeline.camera import Camera
 from pipeline.trace.sampling import cosine_hemisphere, to_world
-from pipeline.trace.scene import TraceScene
+from pipeline.trace.scene import TraceScene, instance_spheres
 
 log = logging.getLogger(__name__)
 
 CONTACT_BAND_PX = 3       # pixels around the objects traced at full resolution (see :func:`shadow_ratio`)
 CONTACT_SMOOTH_PX = 0.75  # Gaussian sigma (pixels) of the ratio in that band
 E0_SMOOTH_PX = 4.0        # Gaussian sigma (pixels) of the light arriving without objects
-
-
-def instance_spheres(scene: TraceScene) -> tuple[np.ndarray, np.ndarray]:
-    """Bounding spheres of the object instances: centres (N, 3) and radii (N,) (bounding-box based)."""
-    if scene.spheres is not None:   # kept by build_scene
-        return scene.spheres
-    n = scene.num_instances
-    c = np.zeros((n, 3))
-    r = np.zeros(n)
-    for k in range(n):
-        v = scene.vertices[np.unique(scene.faces[scene.tri_inst == k + 1])]
-        if len(v):
-            lo, hi = v.min(axis=0), v.max(axis=0)
-            c[k] = 0.5 * (lo + hi)
-            r[k] = 0.5 * np.linalg.norm(hi - lo)
-    return c, r
 
 
 def _room_radiance(scene: TraceScene, room_isect: Intersector, org: np.ndarray,
