@@ -452,28 +452,29 @@ def trace_paths(scene: TraceScene, camera: Camera, pixels: np.ndarray, draws: Pa
 
 @dataclass(frozen=True)
 class ObjectShadows:
-    """What :func:`shadowed_room_radiance` needs: the room and the objects as separate occluders, the
-    objects' bounding spheres and the light samples per room point (see :func:`object_shadows`)."""
+    """What :func:`shadowed_room_radiance` needs: the room and the objects as separate occluders, the room's
+    albedo, the objects' bounding spheres and the light samples per room point (see :func:`object_shadows`)."""
 
     room: object             # Intersector of the room alone
     objects: object          # Intersector of the objects alone
+    room_albedo: np.ndarray  # (room vertices, 3) float32 linear albedo (the light fit's)
     centres: np.ndarray      # (N, 3) float64 bounding-sphere centres of the instances
     radii: np.ndarray        # (N,) float64
     samples: int             # light samples per room point
     min_effect: float        # room points where (r / d)^2 >= this for some object are corrected
 
 
-def object_shadows(scene: TraceScene, room_isect, obj_isect, *, samples: int,
+def object_shadows(scene: TraceScene, room_isect, obj_isect, room_albedo: np.ndarray | None, *, samples: int,
                    min_effect: float) -> ObjectShadows | None:
-    """:class:`ObjectShadows` of a scene, or None where there is nothing to correct (no samples, no objects,
-    no area lights, or a room without albedo: the room reflects nothing the tracer knows of)."""
-    nrv = int(scene.faces[:scene.num_room_tris].max()) + 1 if scene.num_room_tris else 0
-    if (samples <= 0 or scene.num_instances == 0 or not scene.area_lights.count
-            or not np.any(scene.albedo[:nrv] > 0)):
+    """:class:`ObjectShadows` of a scene whose room vertices (the first of ``scene.vertices``) have the albedo
+    ``room_albedo``, or None where there is nothing to correct (no samples, no objects, no area lights, or
+    no albedo: the room reflects nothing the tracer knows of). Once per scene: it holds for every frame."""
+    if (samples <= 0 or scene.num_instances == 0 or not scene.area_lights.count or room_albedo is None
+            or not np.any(room_albedo > 0)):
         return None
     c, r = instance_spheres(scene)
-    return ObjectShadows(room=room_isect, objects=obj_isect, centres=c, radii=r, samples=int(samples),
-                         min_effect=float(min_effect))
+    return ObjectShadows(room=room_isect, objects=obj_isect, room_albedo=np.asarray(room_albedo, np.float32),
+                         centres=c, radii=r, samples=int(samples), min_effect=float(min_effect))
 
 
 def shadowed_room_radiance(scene: TraceScene, sh: ObjectShadows, org: np.ndarray, wi: np.ndarray,
@@ -503,7 +504,7 @@ def shadowed_room_radiance(scene: TraceScene, sh: ObjectShadows, org: np.ndarray
         return Le
     f = scene.faces[prim[sel]]
     uu, vv = u[sel, None], v[sel, None]
-    A = scene.albedo
+    A = sh.room_albedo                   # room triangles index the room's vertices only
     rho = (1 - uu - vv) * A[f[:, 0]] + uu * A[f[:, 1]] + vv * A[f[:, 2]]
     ng = scene.tri_normal[prim[sel]].astype(np.float64)
     ng = np.where((_dot(ng, wi[sel]) > 0)[:, None], -ng, ng)

@@ -4,8 +4,7 @@ Triangles ``[0, num_room_tris)`` are the room, the rest the object instances in 
 ``tri_inst`` is 0 for the room and ``k + 1`` for instance ``k`` (the raster label convention).
 Surfaces have a linear base colour (albedo) and a linear emitted radiance per vertex; in the "scan"
 lighting mode the room emits its own colours and reflects nothing, in the "published" mode it emits
-nothing and reflects its colours diffusely; in the "fit" mode it emits the fitted radiance and carries the
-fit's albedo, which only takes the objects' shadows out of the light it sends them. Objects never emit.
+nothing and reflects its colours diffusely; in the "fit" mode it emits the fitted radiance. Objects never emit.
 """
 
 from __future__ import annotations
@@ -72,20 +71,24 @@ class TraceScene:
         return int(self.metallic.shape[0]) - 1
 
 
-def instance_spheres(scene: TraceScene) -> tuple[np.ndarray, np.ndarray]:
-    """Bounding spheres of the object instances: centres (N, 3) and radii (N,) (bounding-box based)."""
-    if scene.spheres is not None:   # kept by build_scene
-        return scene.spheres
-    n = scene.num_instances
-    c = np.zeros((n, 3))
-    r = np.zeros(n)
-    for k in range(n):
-        v = scene.vertices[np.unique(scene.faces[scene.tri_inst == k + 1])]
+def _bounding_spheres(vertex_sets: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Centres (N, 3) and radii (N,) of the spheres around each set's bounding box (0 for an empty set)."""
+    c = np.zeros((len(vertex_sets), 3))
+    r = np.zeros(len(vertex_sets))
+    for k, v in enumerate(vertex_sets):
         if len(v):
             lo, hi = v.min(axis=0), v.max(axis=0)
             c[k] = 0.5 * (lo + hi)
             r[k] = 0.5 * np.linalg.norm(hi - lo)
     return c, r
+
+
+def instance_spheres(scene: TraceScene) -> tuple[np.ndarray, np.ndarray]:
+    """Bounding spheres of the object instances: centres (N, 3) and radii (N,) (bounding-box based)."""
+    if scene.spheres is not None:   # kept by build_scene
+        return scene.spheres
+    return _bounding_spheres([scene.vertices[np.unique(scene.faces[scene.tri_inst == k + 1])]
+                              for k in range(scene.num_instances)])
 
 
 @dataclass(frozen=True)
@@ -234,13 +237,7 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
     norms = [vertex_normals(rv, rf) if nrt else np.zeros((nrv, 3), np.float32)]
     tri_inst = [np.zeros(nrt, np.int32)]
     emis = [room_lin.copy() if emits else np.zeros((nrv, 3), np.float32)]
-    if lighting == "fit" and room_lights.albedo is not None:
-        # the room emits what the fit found and reflects nothing, but its albedo takes the objects' shadows
-        # out of the light it sends them (pipeline.trace.pbr.shadowed_room_radiance)
-        room_alb = np.asarray(room_lights.albedo, np.float32).reshape(-1, 3)
-    else:
-        room_alb = np.zeros((nrv, 3), np.float32) if emits else np.clip(room_lin, 0, 1)
-    albedo = [room_alb]
+    albedo = [np.zeros((nrv, 3), np.float32) if emits else np.clip(room_lin, 0, 1)]
     uvs = [np.zeros((nrv, 2), np.float32)]
     metallic, roughness, specular = [0.0], [1.0], [0.0]
     tex_inst, tex_img = [], []
@@ -263,14 +260,9 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
         off += len(ov)
     V = np.concatenate(verts).astype(np.float32)
     F = np.concatenate(faces).astype(np.int32)
-    # the instances' bounding spheres (bounding-box based), once per scene: the shadow pass and the object
-    # tracer ask for them every frame
-    centres, radii = np.zeros((len(objects), 3)), np.zeros(len(objects))
-    for k, ov in enumerate(verts[1:]):
-        if len(ov):
-            v32 = ov.astype(np.float32)
-            lo, hi = v32.min(axis=0), v32.max(axis=0)
-            centres[k], radii[k] = 0.5 * (lo + hi), 0.5 * np.linalg.norm(hi - lo)
+    # the instances' bounding spheres, once per scene: the shadow pass and the object tracer ask every frame
+    ends = np.cumsum([len(v) for v in verts])
+    spheres = _bounding_spheres([V[a:b] for a, b in zip(ends[:-1], ends[1:])])
     E = np.concatenate(emis).astype(np.float32)
     boosted = np.zeros(nrv, bool)
     if lighting == "scan":
@@ -298,9 +290,7 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
     tn = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
     tn /= np.maximum(np.linalg.norm(tn, axis=1, keepdims=True), 1e-30)
     tri_emits = (E[F].max(axis=(1, 2)) > 0) if len(F) else np.zeros(0, bool)
-    tri_scatters = tri_inst_all >= 1
-    if not emits and len(F):   # a reflecting room (published); an emitting one ends the paths that meet it
-        tri_scatters |= alb_all[F].max(axis=(1, 2)) > 0
+    tri_scatters = (tri_inst_all >= 1) | ((alb_all[F].max(axis=(1, 2)) > 0) if len(F) else np.zeros(0, bool))
     log.debug("trace scene: %d triangles (%d room), %d area lights, %d point lights",
               len(F), nrt, area.count, pts.count)
     return TraceScene(vertices=V, faces=F, normals=np.concatenate(norms).astype(np.float32),
@@ -312,4 +302,4 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
                       intersector=EmbreeIntersector(V, F), tri_normal=tn.astype(np.float32),
                       tri_emits=tri_emits, tri_scatters=tri_scatters,
                       env_map=(None if env_map is None or lighting != "scan" else np.asarray(env_map, np.float32)),
-                      up=None if up is None else np.asarray(up, np.float64), spheres=(centres, radii))
+                      up=None if up is None else np.asarray(up, np.float64), spheres=spheres)

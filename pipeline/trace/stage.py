@@ -114,15 +114,16 @@ def _instances(rf: RasterFrame, library: dict) -> list:
 
 
 def trace_frame(ctx: StageContext, scene, rf: RasterFrame, labels: np.ndarray, *, room_isect=None,
-                obj_isect=None, exposure: float = 1.0) -> dict:
+                obj_isect=None, exposure: float = 1.0, object_shadows=None) -> dict:
     """Trace one frame with a prebuilt scene and write its NPZ; returns the frame's summary.
 
     ``exposure``: the photo's exposure relative to the room mesh colours
-    (:func:`pipeline.trace.photolights.frame_exposure`), stored for the compositor.
+    (:func:`pipeline.trace.photolights.frame_exposure`), stored for the compositor. ``object_shadows``: the
+    scene's :class:`~pipeline.trace.pbr.ObjectShadows` (fit lighting), or None.
     """
     from pipeline.seeding import item_rng
     from pipeline.trace.denoise import denoise, denoise_ao
-    from pipeline.trace.pbr import object_shadows, render, trace_mask
+    from pipeline.trace.pbr import render, trace_mask
     from pipeline.trace.shadow import shadow_ratio
 
     cfg = ctx.cfg.trace
@@ -132,10 +133,8 @@ def trace_frame(ctx: StageContext, scene, rf: RasterFrame, labels: np.ndarray, *
                          f"in its JSON; re-run raster")
     rng = item_rng(ctx.cfg.run.seed, ctx.stage, str(rf.key))
     mask = trace_mask(labels, cfg.edge_band)
-    osh = (object_shadows(scene, room_isect, obj_isect, samples=cfg.object_shadows, min_effect=cfg.shadow_min_effect)
-           if cfg.lighting == "fit" and room_isect is not None else None)
     with_ao = ao_used(ctx.cfg)
-    fb = render(scene, cam, mask, settings_from_config(cfg, ao=with_ao), rng, object_shadows=osh)
+    fb = render(scene, cam, mask, settings_from_config(cfg, ao=with_ao), rng, object_shadows=object_shadows)
     pbr, ao = fb.pbr, fb.ao
     if cfg.denoise != "off":
         pbr = denoise(fb.pbr, fb.albedo, fb.normal, fb.coverage > 0, method=cfg.denoise)
@@ -242,6 +241,7 @@ def run_item(ctx: StageContext, item: Item) -> dict:
 
 
 def _run_item(ctx: StageContext, item: Item) -> dict:
+    from pipeline.trace.pbr import object_shadows
     from pipeline.trace.scene import build_scene
     from pipeline.trace.shadow import split_intersectors
 
@@ -254,6 +254,7 @@ def _run_item(ctx: StageContext, item: Item) -> dict:
     env = None if cfg.env_radiance < 0 else np.full(3, cfg.env_radiance, np.float32)
     scene = None
     split = (None, None)
+    osh = None
     out = {}
     for frame in frames:
         raster = load_raster_frame(ctx.run_dir, FrameKey(scene_name, drop, frame))
@@ -265,8 +266,11 @@ def _run_item(ctx: StageContext, item: Item) -> dict:
                                 light_gain=cfg.light_gain, env_radiance=env,
                                 published_power=cfg.published_power, up=scan.up_w,
                                 light_vertices=light_v, env_map=env_map)
-            if cfg.shadow_samples > 0 or (cfg.lighting == "fit" and cfg.object_shadows > 0):
+            if cfg.shadow_samples > 0 or (rl is not None and cfg.object_shadows > 0):
                 split = split_intersectors(scene)
+            if rl is not None:   # the fit's albedo takes the objects' shadows out of the room they see
+                osh = object_shadows(scene, *split, rl.albedo, samples=cfg.object_shadows,
+                                     min_effect=cfg.shadow_min_effect)
         exposure = 1.0
         if cfg.lighting in ("scan", "fit") and frame < scan.num_frames and scan.color_paths[frame]:
             from pipeline.trace.photolights import frame_exposure
@@ -274,7 +278,7 @@ def _run_item(ctx: StageContext, item: Item) -> dict:
             exposure = frame_exposure(scene, scan.camera(frame), read_color(scan, frame),
                                       radiance_scale=cfg.radiance_scale, threshold=cfg.light_threshold)
         out[f"f{frame:06d}"] = trace_frame(ctx, scene, raster, labels, room_isect=split[0], obj_isect=split[1],
-                                           exposure=exposure)
+                                           exposure=exposure, object_shadows=osh)
     return {"frames": out}
 
 

@@ -581,16 +581,18 @@ def _shadow_scene(albedo: float = 0.5, roof: bool = False):
     bf = bf[:, ::-1]                                                      # outward
     cube = ObjectInstance(vertices=bv, faces=bf, normals=np.zeros_like(bv) + [0, 0, 1],
                           albedo=np.full((len(bv), 3), 0.5, np.float32))
-    return build_scene(np.zeros((0, 3)), np.zeros((0, 3), np.int32), None, [cube], lighting="fit", room_lights=rl)
+    return (build_scene(np.zeros((0, 3)), np.zeros((0, 3), np.int32), None, [cube], lighting="fit", room_lights=rl),
+            rl.albedo)
 
 
-def _room_seen_from_above(scene, points, samples=256, seed=0):
+def _room_seen_from_above(scene_albedo, points, samples=256, seed=0):
     """What object paths arriving straight down at floor ``points (n, 3)`` see there."""
     from pipeline.trace.pbr import _emission, object_shadows, shadowed_room_radiance
     from pipeline.trace.shadow import split_intersectors
 
+    scene, albedo = scene_albedo
     ri, oi = split_intersectors(scene)
-    sh = object_shadows(scene, ri, oi, samples=samples, min_effect=0.01)
+    sh = object_shadows(scene, ri, oi, albedo, samples=samples, min_effect=0.01)
     n = len(points)
     org = (np.asarray(points, np.float32) + [0, 0, 0.05]).astype(np.float32)
     wi = np.tile(np.float32([0, 0, -1]), (n, 1))
@@ -628,7 +630,9 @@ def test_object_shadows_are_off_without_albedo_or_samples():
     from pipeline.trace.pbr import object_shadows
     from pipeline.trace.shadow import split_intersectors
 
-    scene = _shadow_scene(albedo=0.0)
+    scene, albedo = _shadow_scene(albedo=0.0)
     ri, oi = split_intersectors(scene)
-    assert object_shadows(scene, ri, oi, samples=4, min_effect=0.04) is None
-    assert object_shadows(_shadow_scene(), ri, oi, samples=0, min_effect=0.04) is None
+    assert object_shadows(scene, ri, oi, albedo, samples=4, min_effect=0.04) is None
+    assert object_shadows(scene, ri, oi, None, samples=4, min_effect=0.04) is None
+    scene, albedo = _shadow_scene()
+    assert object_shadows(scene, ri, oi, albedo, samples=0, min_effect=0.04) is None
