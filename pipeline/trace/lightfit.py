@@ -340,15 +340,12 @@ def _vertex_albedo(V: np.ndarray, F: np.ndarray, P: np.ndarray, N: np.ndarray, r
     (a wall's own plane) falls in the next cell, which its surface's points do not."""
     from scipy.spatial import cKDTree
 
+    from pipeline.trace.scene import vertex_normals
+
     out = np.tile(np.asarray(level, np.float64), (len(V), 1))
     if len(V) == 0 or len(F) == 0 or len(P) == 0:
         return out
-    p = V[F]
-    fn = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    vn = np.zeros_like(V)
-    for j in range(3):
-        np.add.at(vn, F[:, j], fn)
-    vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
+    vn = vertex_normals(V, F).astype(np.float64)
     k = min(k, len(P))
     dist, nb = cKDTree(P).query(V, k=k, distance_upper_bound=reach)
     dist, nb = dist.reshape(len(V), k), nb.reshape(len(V), k)
