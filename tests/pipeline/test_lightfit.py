@@ -167,12 +167,43 @@ def test_fitted_albedo_reaches_the_mesh_vertices(tmp_path):
     # light on floor and walls differs): the floor's albedo at most 0.6 x the walls' where the photos saw them
     assert alb[inner_floor].mean() < 0.6 * alb[mid_wall].mean(), (alb[inner_floor], alb[mid_wall])
     assert np.all(rl.albedo >= 0.0) and np.all(rl.albedo[:len(v)] <= 0.95)
+    # the closing box (the unseen ceiling) reflects like the walls, not like the room's level, which the
+    # dark floor pulls down: its albedo is above the level by what the walls are
+    level = np.asarray(rl.summary["albedo_level"])
+    ratio = np.asarray(rl.summary["unseen_albedo_ratio"])
+    box = rl.albedo[len(v):len(v) + rl.summary["box_cells"] * 4]
+    assert np.all(ratio > 1.2), ratio
+    assert np.allclose(box, np.clip(level * ratio, 0.02, 0.95), atol=1e-6), (box[:2], level, ratio)
     rl.save(tmp_path / "lights.npz")
     z = dict(np.load(tmp_path / "lights.npz"))
     del z["albedo"]
     np.savez(tmp_path / "old.npz", **z)
     with pytest.raises(KeyError):
         RoomLights.load(tmp_path / "old.npz")
+
+
+def test_unseen_cells_take_the_upper_walls_albedo():
+    """The albedo of the upper walls over the level, from points whose radiance is albedo / pi x irradiance:
+    only walls (normal horizontal) above furniture height count, each wall point as one observation of one
+    albedo (not shrunk toward the level); too few wall points leave the unseen cells at the level."""
+    from pipeline.trace.lightfit import LOW_FILL_M, MIN_FIT_POINTS, _wall_ratio
+
+    rng = np.random.default_rng(0)
+    n = 600
+    kind = rng.integers(0, 3, n)          # 0 upper wall, 1 floor, 2 low furniture side
+    cos_up = np.where(kind == 1, 1.0, rng.uniform(-0.2, 0.2, n))
+    height = np.where(kind == 0, rng.uniform(LOW_FILL_M + 0.1, 2.0, n),
+                      np.where(kind == 1, 0.0, rng.uniform(0.1, LOW_FILL_M - 0.1, n)))
+    rho = np.where((kind == 0)[:, None], [0.6, 0.55, 0.5], np.where((kind == 1)[:, None], 0.3, [0.35, 0.2, 0.1]))
+    E = rng.uniform(0.5, 3.0, (n, 3))
+    L = rho / np.pi * E
+    w = rng.uniform(0.5, 2.0, n)
+    level = np.array([0.4, 0.4, 0.25])
+    np.testing.assert_allclose(_wall_ratio(L, E, w, cos_up, height, level), np.array([0.6, 0.55, 0.5]) / level,
+                               rtol=1e-9)
+    few = np.flatnonzero(kind == 0)[MIN_FIT_POINTS - 1:]
+    keep = np.setdiff1d(np.arange(n), few)
+    np.testing.assert_array_equal(_wall_ratio(L[keep], E[keep], w[keep], cos_up[keep], height[keep], level), 1.0)
 
 
 def render_ids(v, f, fr):
