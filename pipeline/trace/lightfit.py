@@ -15,8 +15,10 @@ Yu et al., "Inverse Global Illumination" (SIGGRAPH 1999), reduced to what a CPU 
    (sRGB decoded) and divided by their exposure relative to the mesh colours (median ratio, as the
    trace stage measures it per frame). Rays through holes give the radiance of the box cell they meet;
    a clipped pixel (a channel ``>= threshold``) is a lower bound, never a value. Mesh regions the photos
-   see clipped (voted per vertex, as :mod:`pipeline.trace.photolights` does) are emitters of unknown
-   radiance, bounded below by sensor white.
+   see clipped (voted per vertex, as :mod:`pipeline.trace.photolights` does; where the strided grid met a
+   vertex fewer than twice, its clipped colour votes) are emitters of unknown radiance, bounded below by
+   sensor white. Without the colour's vote the suite's window came out as scattered pieces of half its
+   area in the mesh, the rest taken as a known radiance of sensor white.
 3. **Unknowns.** The radiance of every box cell no photo saw unclipped, and of every clipped mesh
    region: non-negative RGB, bounded below where clipped.
 4. **Fit.** At up to ``points`` room points the photos saw unclipped, a diffuse surface of albedo
@@ -721,6 +723,8 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
 
     # --- unknowns: unseen / clipped box cells, clipped mesh regions ---------------------------------
     light_v = (seen >= 2) & (clipped_v >= st.min_share * np.maximum(seen, 1))
+    if colors is not None:   # where the grid rays barely met a vertex, its colour (from every photo) says
+        light_v |= (seen < 2) & (np.asarray(colors).reshape(-1, 3).max(axis=1) >= st.threshold)
     box_known = box_n > 0
     box_rad = np.zeros((nb, 3))
     box_rad[box_known] = box_sum[box_known] / box_n[box_known, None]

@@ -133,6 +133,24 @@ def test_bad_input_says_what_it_assumed(case, caplog):
         assert np.allclose(np.median(seen, axis=0), srgb_to_linear(np.array([120], np.uint8))[0], rtol=0.05)
 
 
+@pytest.mark.parametrize("code", [255, 249])
+def test_clipped_colours_the_photos_barely_saw_are_emitters(code):
+    """A lamp on the wall the fit's sparse pixel grid barely meets (stride 16: a dozen rays a photo) is still
+    a clipped region when the mesh's colour (from every photo) is clipped; one just under the threshold is not."""
+    v, f, colors = open_room()
+    patch = (np.abs(v[:, 0] - 2.0) < 1e-6) & (np.abs(v[:, 1]) < 0.7) & (v[:, 2] > 0.8) & (v[:, 2] < 1.7)
+    assert patch.sum() >= 4
+    colors = colors.copy()
+    colors[patch] = code
+    rl = fit_room_lights(v, f, colors, frames(4, 120), up=UP, rng=np.random.default_rng(0),
+                         settings=FitSettings(points=300, stride=16, refine=0.0))
+    check_finite(rl)
+    if code >= FitSettings().threshold:
+        assert rl.summary["clipped_vertices"] >= patch.sum() - 2 and rl.summary["clipped_regions"] >= 1
+    else:
+        assert rl.summary["clipped_vertices"] == 0 and rl.summary["clipped_regions"] == 0
+
+
 def test_save_load_round_trip(tmp_path):
     v, f, colors = open_room()
     rl = fit_room_lights(v, f, colors, frames(2, 120), up=UP, rng=np.random.default_rng(0),
