@@ -269,6 +269,10 @@ class TraceConfig:
     fit_albedo_shrink: float = option(1.0, "fit lighting: pull of each albedo patch toward the room's albedo level, "
                                       "in mean points per patch (0 = each patch free: a bright table top becomes bright "
                                       "albedo, not light; tuned on half of the Mitsuba light suite's rooms)", min=0.0)
+    fit_light_colour: str = option("shared", "fit lighting: shared = the emitters the fit finds are one colour, "
+                                   "fitted (a room's lamps and windows are one colour far more often than its "
+                                   "walls'); free = each channel of each emitter on its own (coloured walls then "
+                                   "come out lit by coloured lamps)", choices=("shared", "free"))
     lights_file: str = option("", "fit lighting: JSON file of emitters you know, [{\"corners\": 4 x [x, y, z] world "
                               "metres, \"radiance\": [r, g, b] linear, 1 = sensor white}]; each emits on the side "
                               "its corners turn counter-clockwise around (normal (c1 - c0) x (c2 - c0)); they light the "

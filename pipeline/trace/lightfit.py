@@ -56,9 +56,12 @@ Yu et al., "Inverse Global Illumination" (SIGGRAPH 1999), reduced to what a CPU 
    shadows the objects with it, and takes the objects' shadows out of the room's light they see with the
    albedo.
 
-White balance comes from the same fit: each channel is fitted on its own, so the emitters get the colour
-that explains several surfaces under one light, and the objects' own colours are lit in the photo's
-colour space; no grey-world assumption is made.
+White balance comes from the same fit: each channel has its own albedo level, and the emitters found share
+one colour, fitted over the three channels together (``shared_colour``, :func:`_shared_colour`), so they get
+the colour that explains several surfaces under one light, and the objects' own colours are lit in the
+photo's colour space; no grey-world assumption is made. Solved channel by channel, each channel put its
+light wherever it explained its own surfaces best: the suite's coloured room came out lit by a pure-red
+and a pure-green lamp, each on the wall of the other colour.
 
 Cost (640x480, 24 photos, 8000 points): about 10 CPU seconds; computed once per scan and kept in
 ``RUN/trace/<scene>/lights.npz``.
@@ -115,6 +118,7 @@ class FitSettings:
     max_emitters: int = 24      # stage 2: at most this many unknown cells emit (0 = no second stage)
     refine: float = 0.1         # stage 3: metres, size of the lamps the emitting cells are refined into (0 = off)
     radiance_scale: float = 1.0  # the trace stage's: radiance = this x linear colour
+    shared_colour: bool = True  # every emitter found is one colour (fitted); False: each channel on its own
 
 
 @dataclass(frozen=True)
@@ -276,14 +280,17 @@ def _nnls(Q: np.ndarray, g: np.ndarray, lam: np.ndarray) -> np.ndarray:
 
 
 def _solve_emission(rho_pt: np.ndarray, Ek: np.ndarray, A_ch, L: np.ndarray, w: np.ndarray,
-                    lb: np.ndarray, lam_k: np.ndarray, sparsity: float, scale: float | None = None
-                    ) -> tuple[np.ndarray, float]:
+                    lb: np.ndarray, lam_k: np.ndarray, sparsity: float, scale: float | None = None,
+                    shared_colour: bool = False) -> tuple[np.ndarray, float]:
     """Emission (K, 3) >= lb minimising the weighted residual of ``L = rho/pi (Ek + A e)`` plus an L1 prior
     on emitted power (``sparsity x scale x lam_k``; ``scale`` by default the columns' data scale at
-    ``PRIOR_ALBEDO``); returns it and the prior's value per channel (3,)."""
+    ``PRIOR_ALBEDO``); returns it and the prior's value per channel (3,). ``shared_colour``: the emission
+    above the lower bound is one colour for every unknown (:func:`_shared_colour`), else each channel is
+    solved on its own."""
     K = A_ch[0].shape[1]
     e = np.zeros((K, 3))
     cost = np.zeros(3)
+    parts = []
     for ch in range(3):
         A = A_ch[ch]
         s = w * rho_pt[:, ch] / np.pi                   # row scale
@@ -300,7 +307,41 @@ def _solve_emission(rho_pt: np.ndarray, Ek: np.ndarray, A_ch, L: np.ndarray, w: 
         x = _nnls(Q, g, lam)
         e[:, ch] = lb[:, ch] + x
         cost[ch] = float(lam @ x)          # the prior's part of the objective (the data part: the caller's)
+        parts.append((B, y, Q, g, lam))
+    if shared_colour and K:
+        x, col = _shared_colour(parts, e - lb)
+        e = lb + x[:, None] * col[None, :]
+        cost = np.array([float(parts[c][4] @ x) * col[c] for c in range(3)])
     return e, cost
+
+
+def _shared_colour(parts: list, x0: np.ndarray, iters: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Emission ``x (K,) >= 0`` times one colour ``col (3,) >= 0`` (mean 1) for every unknown, minimising the
+    three channels' objectives together: ``parts`` holds each channel's (B, y, Q = B'B, g = B'y, prior
+    weights), ``x0 (K, 3)`` each channel's own solution (its totals start the colour). Alternates the
+    emission (one non-negative least squares over the channels' stacked rows at the colour) and the colour
+    (per channel, the best non-negative scale of ``B x``).
+
+    The channels solved on their own are each free to put their light anywhere: in the light suite's
+    coloured room they lit the red wall with a pure-red lamp on the green wall opposite and the green
+    wall with a pure-green one on the red wall, and the objects between came out 1.3x too green. A room's
+    lamps, windows and panels are one colour far more often than they are the colours of its walls."""
+    tot = x0.sum(axis=0)
+    col = tot / tot.mean() if tot.mean() > 0 else np.ones(3)
+    x = np.zeros(x0.shape[0])
+    for _ in range(iters):
+        x = _nnls(sum(col[c] ** 2 * parts[c][2] for c in range(3)), sum(col[c] * parts[c][3] for c in range(3)),
+                  sum(col[c] * parts[c][4] for c in range(3)))
+        for c, (B, y, _, _, lam) in enumerate(parts):
+            bx = B @ x
+            den = float(bx @ bx)
+            col[c] = max(0.0, (float(bx @ y) - float(lam @ x)) / den) if den > 0 else 0.0
+        m = float(col.mean())
+        if m <= 0:
+            return np.zeros_like(x), np.ones(3)
+        col /= m
+        x = x * m
+    return x, col
 
 
 def _curve_minimum(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -901,7 +942,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         ej = lbj.copy()
         l1 = np.zeros(3)
         for _ in range(iters):
-            ej, l1 = _solve_emission(rho[pt], Ekc, cols, Lr, wr, lbj, lamj, sparsity, scale)
+            ej, l1 = _solve_emission(rho[pt], Ekc, cols, Lr, wr, lbj, lamj, sparsity, scale, st.shared_colour)
             E = Ekc + np.stack([cols[c] @ ej[:, c] for c in range(3)], axis=1)
             rho_new = np.empty((npatch, 3))
             for ch in range(3):

@@ -188,7 +188,8 @@ def fit_settings(cfg: TraceConfig, width: int):
                        sparsity=cfg.fit_sparsity,
                        level_tolerance=cfg.fit_level_tolerance, max_emitters=cfg.fit_emitters,
                        refine=cfg.fit_refine, albedo_shrink=cfg.fit_albedo_shrink,
-                       threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale)
+                       threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale,
+                       shared_colour=cfg.fit_light_colour == "shared")
 
 
 def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, stamps: tuple, threads: int = 1):

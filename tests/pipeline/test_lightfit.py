@@ -491,3 +491,34 @@ def test_a_lamp_seen_through_a_gap_pays_for_its_size():
     assert np.isclose(per_light[1], 10 / med)
     cell_fit, cell_price = _sliver_rule(np.array([med, 0.5 * med]), np.full(2, med), med)
     assert cell_fit.all() and np.allclose(cell_price, 1.0)     # stage 1: at least the median cell's price
+
+
+def test_shared_colour_emission():
+    """With ``shared_colour`` every unknown emits one colour: light of one colour from two emitters is
+    recovered exactly (emitters and colour), and red light from one emitter with green from another, which
+    the channels solved on their own reproduce, becomes one colour for both."""
+    from pipeline.trace.lightfit import _solve_emission
+
+    rng = np.random.default_rng(5)
+    n, k = 300, 6
+    A = rng.uniform(0.0, 1.0, (n, k)) ** 3
+    rho = np.full((n, 3), 0.5)
+    zeros, w, lb, lam = np.zeros((n, 3)), np.ones(n), np.zeros((k, 3)), np.ones(k)
+    e_true = np.zeros((k, 3))
+    e_true[1] = 2.0 * np.array([1.0, 0.8, 0.5])
+    e_true[4] = 0.7 * np.array([1.0, 0.8, 0.5])
+    L = rho / np.pi * (A @ e_true)
+    e, _ = _solve_emission(rho, zeros, [A, A, A], L, w, lb, lam, 0.0, shared_colour=True)
+    np.testing.assert_allclose(e, e_true, atol=1e-6)
+    # red from emitter 1, green from emitter 4
+    e_mixed = np.zeros((k, 3))
+    e_mixed[1, 0], e_mixed[4, 1] = 2.0, 2.0
+    L = rho / np.pi * (A @ e_mixed)
+    free, _ = _solve_emission(rho, zeros, [A, A, A], L, w, lb, lam, 0.0, shared_colour=False)
+    np.testing.assert_allclose(free, e_mixed, atol=1e-6)
+    one, _ = _solve_emission(rho, zeros, [A, A, A], L, w, lb, lam, 0.0, shared_colour=True)
+    lit = one.sum(axis=1) > 1e-6
+    assert lit.sum() >= 2
+    chroma = one[lit] / one[lit].sum(axis=1, keepdims=True)
+    np.testing.assert_allclose(chroma, np.broadcast_to(chroma[0], chroma.shape), atol=1e-9)
+    assert np.all(chroma[0][:2] > 0.3) and chroma[0][2] < 1e-6    # red and green alike, no blue
