@@ -1174,8 +1174,8 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     log.info("light fit of %s: %d points, %d unknowns, albedo level %s, %d emitters sampled, residual %.3f, %.1f s",
              name, n, K, best_level, len(emitters), summary["residual_median"], summary["seconds"])
     # the albedo the fit found, per vertex (the trace stage takes the objects' shadows out of the room's
-    # light with it): the mesh's from its nearest fit points, the box's at the level (as its unseen cells
-    # reflect here), the lamps' 0
+    # light with it): the mesh's from its nearest fit points, the box's the unseen cells' (the upper walls',
+    # as they reflect here), the lamps' 0
     lvl = np.full(3, 0.5) if best_level is None else np.asarray(best_level, np.float64)
     albedo = np.zeros((len(AVo), 3))
     albedo[:nv] = _vertex_albedo(V, F, P, N, rho[patch], lvl, st.albedo_cell)
