@@ -35,7 +35,7 @@ from pipeline.trace.intersect import Hits, offset_origins
 from pipeline.trace.lights import sample_area_lights
 from pipeline.trace.sampling import (cosine_hemisphere, frame_to_local, frame_to_world, local_frame,
                                      power_heuristic, to_world)
-from pipeline.trace.scene import TraceScene, instance_spheres
+from pipeline.trace.scene import TraceScene, instance_spheres, sphere_cover
 
 log = logging.getLogger(__name__)
 
@@ -296,6 +296,28 @@ def light_sample(scene: TraceScene, p: np.ndarray, u0: np.ndarray, u1: np.ndarra
     return wl, dist, Le, cos_l, pA
 
 
+def light_rays(scene: TraceScene, p: np.ndarray, ng: np.ndarray, pr: np.ndarray, m, u0: np.ndarray,
+               u1: np.ndarray, u2: np.ndarray, eps: float
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Shadow rays from room points ``p[pr]`` (normals ``ng[pr]``, on the side the light comes from) to one
+    point each on the area lights (:func:`light_sample`, both sides emitting, draws ``u0, u1, u2``), and
+    what each would add to its point's irradiance if nothing blocked it, ``Le cos_p cos_l / (pA d^2 m)``
+    (``m``: samples per point, scalar or per ray). Shared by the shadow pass's direct light and the object
+    shadows; the callers choose which occluders to ask, in which order.
+
+    Returns ``ok`` (indices into ``pr`` of the rays that can carry light), their origins, directions
+    (float32), ``tmax`` and contributions (k, 3) float64."""
+    wl, dist, Le, cos_l, pA = light_sample(scene, p[pr], u0, u1, u2, one_sided=False)
+    cos_p = _dot(wl, ng[pr])
+    ok = np.flatnonzero((cos_p > 0) & (cos_l > 1e-6) & (dist > 4 * eps))
+    wl32 = wl[ok].astype(np.float32)
+    org = offset_origins(p[pr[ok]].astype(np.float32), ng[pr[ok]].astype(np.float32), wl32, eps)
+    tmax = (dist[ok] - 2 * eps).astype(np.float32)
+    mk = np.broadcast_to(np.asarray(m, np.float64), pr.shape)[ok]
+    c = Le[ok] * (cos_p[ok] * cos_l[ok] / (pA[ok] * dist[ok] ** 2 * mk))[:, None]
+    return ok, org, wl32, tmax, c
+
+
 def area_light_nee(scene: TraceScene, s: Surface, lobes, wo_l: np.ndarray, frame, beta: np.ndarray,
                    u0: np.ndarray, u1: np.ndarray, u2: np.ndarray, eps: float, *,
                    one_sided: bool) -> tuple[np.ndarray, int]:
@@ -497,8 +519,7 @@ def shadowed_room_radiance(scene: TraceScene, sh: ObjectShadows, org: np.ndarray
     if sel.size == 0:
         return Le
     x = org[sel].astype(np.float64) + t[sel, None].astype(np.float64) * wi[sel]
-    d = np.linalg.norm(x[:, None, :] - sh.centres[None], axis=2)
-    near = ((sh.radii[None] / np.maximum(d, 1e-9)) ** 2 >= sh.min_effect).any(axis=1)
+    near = (sphere_cover(x, (sh.centres, sh.radii)) >= sh.min_effect).any(axis=1)
     sel, x = sel[near], x[near]
     if sel.size == 0:
         return Le
@@ -511,20 +532,15 @@ def shadowed_room_radiance(scene: TraceScene, sh: ObjectShadows, org: np.ndarray
     m = sh.samples
     pr = np.repeat(np.arange(sel.size), m)
     draws = rng.random((3, pr.size))
-    wl, dist, Ll, cos_l, pA = light_sample(scene, x[pr], draws[0], draws[1], draws[2], one_sided=False)
-    cos_p = _dot(wl, ng[pr])
-    ok = np.flatnonzero((cos_p > 0) & (cos_l > 1e-6) & (dist > 4 * eps))
+    ok, o2, wl32, tmax, e = light_rays(scene, x, ng, pr, m, draws[0], draws[1], draws[2], eps)
     if ok.size:
-        wl32 = wl[ok].astype(np.float32)
-        o2 = offset_origins(x[pr[ok]].astype(np.float32), ng[pr[ok]].astype(np.float32), wl32, eps)
-        tmax = (dist[ok] - 2 * eps).astype(np.float32)
         blocked = sh.objects.occluded(o2, wl32, tmax)
-        ok, o2, wl32, tmax = ok[blocked], o2[blocked], wl32[blocked], tmax[blocked]
+        ok, e, o2, wl32, tmax = ok[blocked], e[blocked], o2[blocked], wl32[blocked], tmax[blocked]
         if ok.size:
-            ok = ok[~sh.room.occluded(o2, wl32, tmax)]
+            free = ~sh.room.occluded(o2, wl32, tmax)
+            ok, e = ok[free], e[free]
     if ok.size == 0:
         return Le
-    e = Ll[ok] * (cos_p[ok] * cos_l[ok] / (pA[ok] * dist[ok] ** 2 * m))[:, None]
     lost = np.zeros((sel.size, 3))
     add_rows(lost, pr[ok], e)
     out = np.array(Le, np.float32)

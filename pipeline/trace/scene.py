@@ -83,6 +83,15 @@ def _bounding_spheres(vertex_sets: list[np.ndarray]) -> tuple[np.ndarray, np.nda
     return c, r
 
 
+def sphere_cover(points: np.ndarray, spheres: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """(n, N) ``(r / d)^2`` of each bounding sphere ``spheres`` (centres (N, 3), radii (N,)) seen from
+    ``points (n, 3)``: a bound on the cosine-weighted share of the hemisphere the sphere can cover (>= 1
+    inside it). The shadow pass and the object shadows trace only where it reaches their ``min_effect``."""
+    c, r = spheres
+    d = np.linalg.norm(points[:, None, :] - c[None], axis=2)
+    return (r[None] / np.maximum(d, 1e-9)) ** 2
+
+
 def instance_spheres(scene: TraceScene) -> tuple[np.ndarray, np.ndarray]:
     """Bounding spheres of the object instances: centres (N, 3) and radii (N,) (bounding-box based)."""
     if scene.spheres is not None:   # kept by build_scene

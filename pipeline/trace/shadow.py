@@ -37,7 +37,7 @@ from pipeline.color import LUMINANCE_F64
 from pipeline.trace.intersect import EmbreeIntersector, Intersector, offset_origins
 from pipeline.camera import Camera
 from pipeline.trace.sampling import cosine_hemisphere, to_world
-from pipeline.trace.scene import TraceScene, instance_spheres
+from pipeline.trace.scene import TraceScene, instance_spheres, sphere_cover
 
 log = logging.getLogger(__name__)
 
@@ -77,29 +77,22 @@ def _direct_light(scene: TraceScene, room_isect: Intersector, obj_isect: Interse
     gives the objects' shadow its direction and its edge (hard under a small light, soft under a large
     one) with the noise of a few explicit samples, not of hemisphere rays that rarely meet a small lamp.
     """
-    from pipeline.trace.pbr import light_sample
+    from pipeline.trace.pbr import light_rays
 
     n = p.shape[0]
     pr = np.repeat(np.arange(n), per)
     m = per[pr]
     rank = np.arange(pr.size) - np.repeat(np.cumsum(per) - per, per)
     u0 = (rank + rng.random(pr.size)) / m                     # stratified light choice
-    wl, dist, Le, cos_l, pA = light_sample(scene, p[pr], u0, rng.random(pr.size), rng.random(pr.size),
-                                           one_sided=False)
-    Le = Le @ LUMINANCE_F64
-    cos_p = np.einsum("ij,ij->i", wl, ng[pr])
-    ok = np.flatnonzero((cos_p > 0) & (cos_l > 1e-6) & (dist > 4 * eps))
+    ok, org, wl32, tmax, c = light_rays(scene, p, ng, pr, m, u0, rng.random(pr.size), rng.random(pr.size), eps)
     e0 = np.zeros(n)
     blocked = np.zeros(n)
     if ok.size == 0:
         return e0, blocked
-    wl32 = wl[ok].astype(np.float32)
-    org = offset_origins(p[pr[ok]], ng[pr[ok]], wl32, eps)
-    tmax = (dist[ok] - 2 * eps).astype(np.float32)
     free = ~room_isect.occluded(org, wl32, tmax)
     ok, org, wl32, tmax = ok[free], org[free], wl32[free], tmax[free]
-    # E = integral L cos / pi over solid angle (as radiance from a white surface), pdf_sa = pA d^2 / cos_l
-    c = Le[ok] * cos_p[ok] * cos_l[ok] / (np.pi * pA[ok] * dist[ok] ** 2) / m[ok]
+    # as radiance from a white surface: E / pi, in luminance
+    c = c[free] @ LUMINANCE_F64 / np.pi
     e0 = np.bincount(pr[ok], weights=c, minlength=n)
     if ok.size:
         hit_obj = obj_isect.occluded(org, wl32, tmax)
@@ -158,10 +151,10 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
     ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-20)
     ng = np.where((np.einsum("ij,ij->i", ng, d) > 0)[:, None], -ng, ng).astype(np.float32)
     c, r = instance_spheres(scene)
-    dist = np.linalg.norm(p[:, None, :] - c[None], axis=2)
-    near = ((r[None] / np.maximum(dist, 1e-9)) ** 2 >= min_effect).any(axis=1)
+    sin2 = sphere_cover(p, (c, r))                                          # (n, N)
+    near = (sin2 >= min_effect).any(axis=1)
     pix, p, ng = pix[near], p[near], ng[near]
-    dist = dist[near]
+    sin2 = sin2[near]
     n = pix.size
     if n == 0:
         return out.reshape(H, W)
@@ -188,7 +181,6 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
     # (low noise for a small solid angle); a ray that hits an object before the room swaps the room's
     # light behind it for the object's (albedo x mean light here); directions inside several cones
     # are shared between them (weight 1 / number of cones)
-    sin2 = (r[None] / np.maximum(dist, 1e-9)) ** 2                            # (n, N)
     cos_max = np.where(sin2 < 1, np.sqrt(np.maximum(0.0, 1 - sin2)), -1.0)  # inside a sphere: all directions
     axes = c[None] - p[:, None, :].astype(np.float64)
     axes /= np.maximum(np.linalg.norm(axes, axis=2, keepdims=True), 1e-12)
