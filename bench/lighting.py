@@ -362,7 +362,7 @@ def main(argv: list[str] | None = None) -> int:
     SETTINGS["fit"] = SETTINGS["fit"] + list(a.set)
     res = {}
     for r in rooms:
-        res[r] = run_room(suite / r, Path(a.work) / r, variants, a.frames, a.reuse)
+        res[r] = run_room(suite / r, Path(a.work).resolve() / r, variants, a.frames, a.reuse)
     summary = summarise(res, variants)
     doc = {"summary": summary, "rooms": res, "band_px_at_640": BAND, "tuned_on": TUNE_ROOMS, "held_out": HELD_OUT,
            "suite": str(suite), "machine": os.uname().nodename, "date": time.strftime("%Y-%m-%d %H:%M")}
