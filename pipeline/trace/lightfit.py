@@ -47,7 +47,9 @@ Yu et al., "Inverse Global Illumination" (SIGGRAPH 1999), reduced to what a CPU 
    Stage 1 and stage 3's choice among the lamps (the searches over all unknowns, the fit's cost) use
    every other point; stage 2's and 3's levels and the chosen emitters' power use all of them. The level is
    the noisiest thing the fit finds: on the suite, 8000 points this way held each room's objects PSNR
-   within 1.3 dB across run seeds at about the cost of 4000 everywhere (within up to 1.5 dB; 2000: 7 dB).
+   within 1.3 dB across run seeds at about the cost of 4000 everywhere (within up to 1.5 dB; 2000: 7 dB);
+   16000 (the default) raised the tuned rooms' objects PSNR by 0.5 dB over three run seeds (lamp_in_view
+   +0.9, window +0.7, ceiling 0.0) for about twice the fit's seconds.
 5. **Result.** :class:`RoomLights`: the mesh plus the box with a linear radiance per vertex (the mesh's
    colours, fitted radiance on emitters and unseen cells) and the triangles to sample as lights
    (emitters with a visible share of the power; the lamps join the mesh as small one-sided rectangles),
@@ -63,7 +65,7 @@ photo's colour space; no grey-world assumption is made. Solved channel by channe
 light wherever it explained its own surfaces best: the suite's coloured room came out lit by a pure-red
 and a pure-green lamp, each on the wall of the other colour.
 
-Cost (640x480, 24 photos, 8000 points): about 10 CPU seconds; computed once per scan and kept in
+Cost (640x480, 8 photos, 16000 points): 10-20 CPU seconds on the light suite; computed once per scan and kept in
 ``RUN/trace/<scene>/lights.npz``.
 """
 
@@ -85,7 +87,11 @@ from pipeline.trace.photolights import EXPOSURE_RANGE, MIN_EXPOSURE_SAMPLES
 log = logging.getLogger(__name__)
 
 ALBEDO_RANGE = (0.02, 0.95)   # plausible diffuse albedo of room surfaces (linear, per channel)
-ALBEDO_LEVELS = (0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85)
+# the room's albedo level (per channel, the geometric mean over the photographed patches) is searched over these;
+# a room with deep red or green walls or a dark floor has a channel well below 0.15 (the suite's coloured room,
+# walls 0.06-0.09 in blue: the fit sat at 0.15, the old grid's end, and lit the objects 0.78x too little in blue)
+ALBEDO_LEVELS = (0.05, 0.075, 0.1, 0.125, 0.15, 0.2, 0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55, 0.6, 0.65, 0.7, 0.75,
+                 0.8, 0.85)
 MIN_FIT_POINTS = 50           # unclipped room points needed to fit anything
 DARK_LEVEL = 0.004            # linear photo level below which a pixel carries no information (sRGB ~ 13)
 MARGIN = 0.02                 # metres between the mesh's extent and the closing box
@@ -103,7 +109,7 @@ LIGHT_SHARE = 0.002           # emitters with at least this share of the fitted 
 class FitSettings:
     """Knobs of :func:`fit_room_lights` (the trace stage fills them from TraceConfig)."""
 
-    points: int = 8000          # room points the fit uses at most (every other one to find where the light is)
+    points: int = 16000         # room points the fit uses at most (every other one to find where the light is)
     gather_rays: int = 64       # hemisphere rays per point for the known irradiance
     emitter_samples: int = 2    # area samples per (point, unknown) pair
     cell: float = 0.4           # metres, size of the closing box's cells

@@ -522,3 +522,20 @@ def test_shared_colour_emission():
     chroma = one[lit] / one[lit].sum(axis=1, keepdims=True)
     np.testing.assert_allclose(chroma, np.broadcast_to(chroma[0], chroma.shape), atol=1e-9)
     assert np.all(chroma[0][:2] > 0.3) and chroma[0][2] < 1e-6    # red and green alike, no blue
+
+
+@pytest.mark.parametrize("best", [0.07, 0.11, 0.42])
+def test_albedo_level_search_reaches_dark_rooms(best):
+    """A channel whose photos are best explained at a room albedo level of ``best`` gets that level from the
+    search grid and its parabola, not the grid's end: the light suite's red- and green-walled room has walls
+    of 0.06-0.09 in blue, and 7-Scenes' kitchen sat at the old grid's floor of 0.15 in every channel. A
+    residual that falls all the way to the grid's darkest level stops there."""
+    from pipeline.trace.lightfit import ALBEDO_LEVELS, ALBEDO_RANGE, _curve_minimum
+
+    x = np.asarray(ALBEDO_LEVELS)
+    assert x.min() >= ALBEDO_RANGE[0] and x.max() <= ALBEDO_RANGE[1]
+    y = np.stack([(x - best) ** 2 + 1.0, np.log(x / best) ** 2 + 1.0, x], axis=1)   # two shapes of curve, one falling
+    found = _curve_minimum(x, y)
+    np.testing.assert_allclose(found[0], best, rtol=0.02)
+    np.testing.assert_allclose(found[1], best, rtol=0.1)
+    assert found[2] == x.min()
