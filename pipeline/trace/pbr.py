@@ -4,7 +4,8 @@
 Every step works on a batch of rays (structure of arrays) that carry the index of the pixel sample
 they belong to (pbrt-v4's wavefront design, ``pixelIndex``); there is no Python loop over rays.
 
-Per pass, each active pixel gets ``spp_batch`` jittered primary rays. A primary ray that hits an object
+Per pass, each active pixel gets ``spp_batch`` jittered primary rays; the first bounce's random numbers
+(jitter, light sample, BSDF sample) are stratified over a pixel's samples (:class:`StratifiedDraws`). A primary ray that hits an object
 starts a path (and ``ao_samples`` AO rays); one that hits the room first, or nothing, contributes 0 and
 lowers the pixel's coverage. Paths bounce between objects (and, in the published mode, off the room)
 up to ``max_depth`` scattering events with Russian roulette from ``rr_depth`` on. After ``spp_min``
@@ -53,6 +54,7 @@ class RenderSettings:
     ao_samples: int = 1           # AO rays per primary object hit (0 = no AO pass)
     ao_distance: float = 0.3      # metres, AO occluders farther than this do not count
     ray_eps: float = TRACE_RAY_EPS_M  # metres, origin offset off surfaces
+    stratified: bool = True       # first bounce from StratifiedDraws (False: independent draws, PathDraws)
 
 
 @dataclass(frozen=True)
@@ -160,6 +162,10 @@ class PathDraws:
     def __init__(self, rng: np.random.Generator) -> None:
         self.rng = rng
 
+    def camera(self, n: int) -> np.ndarray:
+        """(n, 2) float32 jitter of the camera rays in their pixels."""
+        return self.rng.random((n, 2), dtype=np.float32)
+
     def begin(self, n: int) -> None:
         """Start of a bounce of ``n`` samples (nothing is drawn ahead)."""
 
@@ -171,6 +177,89 @@ class PathDraws:
 
     def rr(self, idx: np.ndarray) -> np.ndarray:
         return self.rng.random(idx.size, dtype=np.float32)
+
+
+def _sobol_2d(m: int) -> np.ndarray:
+    """The first ``2**m`` points of the two-dimensional Sobol' sequence, (2**m, 2) float64: the van der Corput
+    sequence in base 2 and its companion. Every aligned block of ``2**k`` consecutive points has one point in
+    each of any ``2**k`` elementary boxes of equal area (a (0, 2)-sequence), so a pixel's first 4 or 8
+    samples are stratified whatever the adaptive stop leaves it."""
+    n = 1 << m
+    k = np.arange(n, dtype=np.uint64)
+    x = np.zeros(n, np.uint64)
+    y = np.zeros(n, np.uint64)
+    v = np.uint64(1) << np.uint64(31)     # direction numbers of the second dimension: v_j = v_{j-1} ^ (v_{j-1} >> 1)
+    for j in range(m):
+        bit = (k >> np.uint64(j)) & np.uint64(1)
+        x ^= bit * (np.uint64(1) << np.uint64(31 - j))
+        y ^= bit * v
+        v ^= v >> np.uint64(1)
+    return np.stack([x, y], axis=1).astype(np.float64) / float(1 << 32)
+
+
+class StratifiedDraws(PathDraws):
+    """The object tracer's draws: the first bounce's uniforms (the camera jitter, the light sample of
+    next-event estimation and the BSDF sample) stratified over each pixel's samples, later bounces plain
+    random numbers as in :class:`PathDraws`.
+
+    Each group of dimensions (jitter 2D; light choice 1D, light point 2D; lobe choice 1D, direction 2D)
+    takes a point of a (0, 2)-sequence (:func:`_sobol_2d`), shifted modulo 1 by a random offset per pixel
+    and group (Cranley-Patterson rotation: every sample stays uniform, so the estimate stays unbiased). A
+    pixel's samples come in passes of ``batch``; pass ``b`` takes the sequence's ``b``-th block of ``batch``
+    points (under a random permutation of the blocks), in a random order per pixel and group. A block of
+    2**k consecutive points of the sequence is stratified (one point in each of any 2**k elementary boxes),
+    so the samples of every pass cover the pixel, the lights and the hemisphere evenly instead of
+    clumping, and the random orders pair the groups' points at random (pbrt-v4's padded Sobol' sampler,
+    permuted within passes so that the adaptive stop after any pass keeps whole strata).
+    """
+
+    #: dimensions of each group, in draw order: camera jitter, light choice, light point, lobe, direction
+    GROUPS = (2, 1, 2, 1, 2)
+
+    def __init__(self, rng: np.random.Generator, pixels: int, max_samples: int, batch: int) -> None:
+        super().__init__(rng)
+        self.batch = max(1, int(batch))
+        nblocks = max(1, -(-int(max_samples) // self.batch))
+        self.table = _sobol_2d(max(1, int(np.ceil(np.log2(max(nblocks * self.batch, 2))))))
+        g = len(self.GROUPS)
+        # per pixel and group: a random order of the blocks and of the points within a block
+        self.block = np.argsort(rng.random((pixels, g, nblocks)), axis=2)
+        self.within = np.argsort(rng.random((pixels, g, self.batch)), axis=2)
+        self.shift = rng.random((pixels, sum(self.GROUPS)))
+        self.first = np.zeros((sum(self.GROUPS), 0), np.float32)
+        self.depth = 0
+
+    def start(self, pixel: np.ndarray, sample: np.ndarray) -> None:
+        """The next pass's rows: pixel ``pixel (n,)`` (index into the pixels traced) and its sample number
+        ``sample (n,)``; computes the rows' first-bounce uniforms."""
+        sample = np.asarray(sample, np.int64)
+        b, j = sample // self.batch, sample % self.batch
+        b = np.minimum(b, self.block.shape[2] - 1)
+        cols, d = [], 0
+        for gi, dim in enumerate(self.GROUPS):
+            k = self.block[pixel, gi, b] * self.batch + self.within[pixel, gi, j]
+            cols.append((self.table[k, :dim] + self.shift[pixel, d:d + dim]) % 1.0)
+            d += dim
+        self.first = np.ascontiguousarray(np.concatenate(cols, axis=1).T.astype(np.float32))
+        # float32 rounding may reach 1.0: keep every uniform in [0, 1)
+        np.minimum(self.first, np.float32(1.0 - 2 ** -24), out=self.first)
+        self.depth = -1
+
+    def camera(self, n: int) -> np.ndarray:
+        return np.ascontiguousarray(self.first[0:2].T)
+
+    def begin(self, n: int) -> None:
+        self.depth += 1
+
+    def nee(self, idx: np.ndarray) -> np.ndarray:
+        if self.depth == 0:
+            return self.first[2:5, idx].astype(np.float64)
+        return self.rng.random((3, idx.size))
+
+    def bsdf(self, idx: np.ndarray) -> np.ndarray:
+        if self.depth == 0:
+            return self.first[5:8, idx]
+        return self.rng.random((3, idx.size), dtype=np.float32)
 
 
 class ChunkDraws(PathDraws):
@@ -400,7 +489,7 @@ def trace_paths(scene: TraceScene, camera: Camera, pixels: np.ndarray, draws: Pa
     """
     n = pixels.shape[0]
     eps = opts.ray_eps
-    o, d = camera.rays(pixels, draws.rng.random((n, 2), dtype=np.float32))
+    o, d = camera.rays(pixels, draws.camera(n))
     h = scene.intersector.intersect(o, d)
     counter.rays += n
     covered = np.zeros(n, bool)
@@ -610,13 +699,15 @@ def render(scene: TraceScene, camera: Camera, mask: np.ndarray, settings: Render
     nrm = np.zeros((n, 3))
     active = np.arange(n)
     done = 0
-    draws = PathDraws(rng)
+    draws = StratifiedDraws(rng, n, settings.spp, settings.spp_batch) if settings.stratified else PathDraws(rng)
     opts = PathOptions(max_depth=settings.max_depth, rr_depth=settings.rr_depth, ray_eps=settings.ray_eps,
                        ao_samples=settings.ao_samples, ao_distance=settings.ao_distance,
                        object_shadows=object_shadows)
     while active.size and done < settings.spp:
         b = min(settings.spp_batch, settings.spp - done)
         loc = np.repeat(active, b)
+        if settings.stratified:
+            draws.start(loc, done + np.tile(np.arange(b), active.size))
         r = trace_paths(scene, camera, pix[loc], draws, opts, counter)
         add_rows(Ls, loc, r["L"])
         lum = r["L"] @ LUMINANCE.astype(np.float64)

@@ -312,6 +312,67 @@ def test_nee_with_mis_matches_bsdf_sampling_alone():
     assert np.std(a1.pbr[m] - a2.pbr[m]) < 0.7 * np.std(b1.pbr[m] - b2.pbr[m])
 
 
+def test_sobol_2d_blocks_are_stratified():
+    """Every aligned block of 2**k consecutive points has one point in each elementary box of area 2**-k
+    (the (0, 2)-sequence property the stratified sampler relies on), counted box by box."""
+    from pipeline.trace.pbr import _sobol_2d
+
+    P = _sobol_2d(6)
+    assert P.shape == (64, 2) and P.min() >= 0 and P.max() < 1
+    for k in range(1, 7):
+        for start in range(0, 64, 2 ** k):
+            blk = P[start:start + 2 ** k]
+            for a in range(k + 1):
+                box = np.floor(blk[:, 0] * 2 ** a) * 2 ** (k - a) + np.floor(blk[:, 1] * 2 ** (k - a))
+                assert len(np.unique(box)) == 2 ** k, (k, start, a)
+
+
+def test_stratified_draws_are_uniform_independent_across_groups_and_even_within_a_pass():
+    from pipeline.trace.pbr import StratifiedDraws
+
+    n = 20000
+    d = StratifiedDraws(np.random.default_rng(0), pixels=n, max_samples=8, batch=4)
+    d.start(np.repeat(np.arange(n), 4), np.tile(np.arange(4), n))
+    U = d.first.astype(np.float64)          # (8 dimensions, 4 n samples)
+    assert U.shape == (8, 4 * n) and U.min() >= 0 and U.max() < 1
+    for row in U:                           # each sample on its own is uniform: the estimate stays unbiased
+        assert stats.kstest(row, "uniform").pvalue > 1e-3
+    rng = np.random.default_rng(1)
+    iid = rng.random((2, 4 * n))
+
+    def f(x, y):   # smooth and periodic: a pixel's 4-sample mean of it estimates 1/4
+        return np.sin(np.pi * x) ** 2 * np.sin(np.pi * y) ** 2
+
+    base = f(*iid).reshape(n, 4).mean(axis=1).var()
+    for i, j in ((0, 1), (3, 4), (6, 7), (0, 2), (2, 5)):   # within a 2D group, and across groups
+        m = f(U[i], U[j]).reshape(n, 4).mean(axis=1)
+        assert m.mean() == pytest.approx(0.25, abs=3e-3)
+        assert m.var() < 0.6 * base, (i, j)                   # 0.27-0.41 measured; independent draws: 1
+        assert abs(np.corrcoef(U[i], U[j])[0, 1]) < 0.02
+
+
+def test_stratified_first_bounce_halves_the_noise_of_next_event_estimation():
+    """A sphere under a ceiling lamp at 8 spp: the same mean as independent draws, with about half the
+    pixel noise (0.079 against 0.154 measured)."""
+    rv, rf = box_room((-2, -3, -2), (2, 3, 2), n=8)
+    col = np.zeros((len(rv), 3), np.uint8)
+    lamp = (rv[:, 2] > 1.99) & (np.abs(rv[:, 0]) < 1.01) & (np.abs(rv[:, 1]) < 1.6)
+    col[lamp] = 255
+    sc = build_scene(rv, rf, col, [sphere_object(0.5, (0, 0, 0), albedo=0.7, roughness=0.5)], light_gain=3.0)
+    cam = camera(w=48, h=36, f=80.0)
+    mask = np.ones((36, 48), bool)
+    out = {}
+    for strat in (True, False):
+        s = RenderSettings(spp=8, spp_min=8, max_depth=2, stratified=strat)
+        out[strat] = [render(sc, cam, mask, s, np.random.default_rng(k)) for k in range(4)]
+    m = _interior(out[True][0]) & _interior(out[False][0])
+    assert m.sum() > 500
+    mean = {k: np.mean([r.pbr[m].mean() for r in v]) for k, v in out.items()}
+    assert mean[True] / mean[False] == pytest.approx(1.0, abs=0.02)
+    noise = {k: np.std(v[0].pbr[m] - v[1].pbr[m]) for k, v in out.items()}
+    assert noise[True] < 0.7 * noise[False]
+
+
 def test_primary_ray_hitting_the_room_first_contributes_nothing():
     wall_v, wall_f = quad((0, -1.5, 0), (2, 0, 0), (0, 0, 2))  # between camera and sphere
     sc = build_scene(wall_v, wall_f, None, [sphere_object()], env_radiance=np.ones(3))
