@@ -1,7 +1,6 @@
 """Optional denoising of the traced object pixels, guided by the albedo and normal buffers.
 
-Intel Open Image Denoise (the ``pyoidn`` package, with its guides marked noise-free: ``cleanAux``) is used
-when it is installed; otherwise a joint
+Intel Open Image Denoise (the ``pyoidn`` package) is used when it is installed; otherwise a joint
 bilateral filter in NumPy (weights from pixel distance, albedo and normal differences) stands in. Both
 run on a crop around the traced pixels only, and leave every pixel outside ``mask`` untouched.
 """
@@ -88,10 +87,7 @@ def denoise(color: np.ndarray, albedo: np.ndarray, normal: np.ndarray, mask: np.
     if use_oidn:
         import pyoidn
 
-        # the guides are noise-free (first-hit base colour and shading normal, averaged over the pixel's
-        # jittered samples): cleanAux lets OIDN trust them for detail (light suite, true lights, tuned rooms:
-        # objects PSNR 29.93 -> 30.26 dB against Mitsuba, ceiling room +0.7 dB)
-        d = pyoidn.denoise(c, a, n, hdr=True, quality="high", clean_aux=True)
+        d = pyoidn.denoise(c, a, n, hdr=True, quality="high")
     else:
         d = joint_bilateral(c, a, n)
     m = mask[box]
