@@ -205,12 +205,12 @@ class StratifiedDraws(PathDraws):
     Each group of dimensions (jitter 2D; light choice 1D, light point 2D; lobe choice 1D, direction 2D)
     takes a point of a (0, 2)-sequence (:func:`_sobol_2d`), shifted modulo 1 by a random offset per pixel
     and group (Cranley-Patterson rotation: every sample stays uniform, so the estimate stays unbiased). A
-    pixel's samples come in passes of ``batch``; pass ``b`` takes the sequence's ``b``-th block of ``batch``
-    points (under a random permutation of the blocks), in a random order per pixel and group. A block of
-    2**k consecutive points of the sequence is stratified (one point in each of any 2**k elementary boxes),
-    so the samples of every pass cover the pixel, the lights and the hemisphere evenly instead of
-    clumping, and the random orders pair the groups' points at random (pbrt-v4's padded Sobol' sampler,
-    permuted within passes so that the adaptive stop after any pass keeps whole strata).
+    pixel's samples come in passes of ``batch``; each pass takes the next block of ``batch`` points of the
+    sequence (from a random first block per pixel and group), in a fresh random order per pixel and group.
+    A block of 2**k consecutive points of the sequence is stratified (one point in each of any 2**k
+    elementary boxes), so the samples of every pass cover the pixel, the lights and the hemisphere evenly
+    instead of clumping, and the random orders pair the groups' points at random (pbrt-v4's padded Sobol'
+    sampler, permuted within passes so that the adaptive stop after any pass keeps whole strata).
     """
 
     #: dimensions of each group, in draw order: camera jitter, light choice, light point, lobe, direction
@@ -221,24 +221,26 @@ class StratifiedDraws(PathDraws):
         self.batch = max(1, int(batch))
         nblocks = max(1, -(-int(max_samples) // self.batch))
         self.table = _sobol_2d(max(1, int(np.ceil(np.log2(max(nblocks * self.batch, 2))))))
-        g = len(self.GROUPS)
-        # per pixel and group: a random order of the blocks and of the points within a block
-        self.block = np.argsort(rng.random((pixels, g, nblocks)), axis=2)
-        self.within = np.argsort(rng.random((pixels, g, self.batch)), axis=2)
+        # per pixel and group: the block the first pass takes (each later pass the next one, cyclically)
+        self.nblocks = nblocks
+        self.offset = rng.integers(0, nblocks, size=(pixels, len(self.GROUPS)))
         self.shift = rng.random((pixels, sum(self.GROUPS)))
         self.first = np.zeros((sum(self.GROUPS), 0), np.float32)
         self.depth = 0
 
-    def start(self, pixel: np.ndarray, sample: np.ndarray) -> None:
-        """The next pass's rows: pixel ``pixel (n,)`` (index into the pixels traced) and its sample number
-        ``sample (n,)``; computes the rows' first-bounce uniforms."""
-        sample = np.asarray(sample, np.int64)
-        b, j = sample // self.batch, sample % self.batch
-        b = np.minimum(b, self.block.shape[2] - 1)
+    def start(self, active: np.ndarray, done: int, count: int) -> None:
+        """The next pass: samples ``done .. done + count - 1`` (``done`` a multiple of ``batch``, ``count <=
+        batch``) of the pixels ``active (m,)`` (indices into the pixels traced), in the rows' order of
+        ``np.repeat(active, count)``; computes the rows' first-bounce uniforms. Each pass draws a fresh
+        order of the block's points per pixel and group (its first ``count`` when the pass is short)."""
+        m, g = active.size, len(self.GROUPS)
+        perm = np.argsort(self.rng.random((m, g, self.batch), dtype=np.float32), axis=2)[:, :, :count]
         cols, d = [], 0
         for gi, dim in enumerate(self.GROUPS):
-            k = self.block[pixel, gi, b] * self.batch + self.within[pixel, gi, j]
-            cols.append((self.table[k, :dim] + self.shift[pixel, d:d + dim]) % 1.0)
+            blk = (done // self.batch + self.offset[active, gi]) % self.nblocks
+            k = (blk[:, None] * self.batch + perm[:, gi, :]).reshape(-1)
+            shift = np.repeat(self.shift[active, d:d + dim], count, axis=0)
+            cols.append((self.table[k, :dim] + shift) % 1.0)
             d += dim
         self.first = np.ascontiguousarray(np.concatenate(cols, axis=1).T.astype(np.float32))
         # float32 rounding may reach 1.0: keep every uniform in [0, 1)
@@ -707,7 +709,7 @@ def render(scene: TraceScene, camera: Camera, mask: np.ndarray, settings: Render
         b = min(settings.spp_batch, settings.spp - done)
         loc = np.repeat(active, b)
         if settings.stratified:
-            draws.start(loc, done + np.tile(np.arange(b), active.size))
+            draws.start(active, done, b)
         r = trace_paths(scene, camera, pix[loc], draws, opts, counter)
         add_rows(Ls, loc, r["L"])
         lum = r["L"] @ LUMINANCE.astype(np.float64)
