@@ -204,7 +204,7 @@ class TraceConfig:
                            "(pipeline/trace/lightfit.py), scan = the room mesh's own radiance with clipped-photo "
                            "lights, published = the published four lights",
                            choices=("fit", "scan", "published"))
-    spp_min: int = option(4, "samples per pixel before the adaptive stop may end a pixel", min=1)
+    spp_min: int = option(8, "samples per pixel before the adaptive stop may end a pixel", min=1)
     noise_target: float = option(0.03, "adaptive stop: standard error of a pixel's mean below this share of "
                                  "its mean luminance; 0 = always take spp samples", min=0.0)
     max_depth: int = option(3, "scattering events per path (inter-reflections between objects)", min=1)
