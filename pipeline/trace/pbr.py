@@ -5,9 +5,9 @@ Every step works on a batch of rays (structure of arrays) that carry the index o
 they belong to (pbrt-v4's wavefront design, ``pixelIndex``); there is no Python loop over rays.
 
 Per pass, each active pixel gets ``spp_batch`` jittered primary rays; the first bounce's random numbers
-(jitter, light sample, BSDF sample) are stratified over a pixel's samples (:class:`StratifiedDraws`). A primary ray that hits an object
-starts a path (and ``ao_samples`` AO rays); one that hits the room first, or nothing, contributes 0 and
-lowers the pixel's coverage. Paths bounce between objects (and, in the published mode, off the room)
+(jitter, light sample, BSDF sample) are stratified over a pixel's samples (:class:`StratifiedDraws`). A
+primary ray that hits an object starts a path (and ``ao_samples`` AO rays); one that hits the room first,
+or nothing, contributes 0 and lowers the pixel's coverage. Paths bounce between objects (and, in the published mode, off the room)
 up to ``max_depth`` scattering events with Russian roulette from ``rr_depth`` on. After ``spp_min``
 samples a pixel stops once the standard error of its mean luminance is below ``noise_target`` times
 its mean (with a floor for dark pixels), or at ``spp``.
