@@ -7,10 +7,10 @@ they belong to (pbrt-v4's wavefront design, ``pixelIndex``); there is no Python 
 Per pass, each active pixel gets ``spp_batch`` jittered primary rays; the first bounce's random numbers
 (jitter, light sample, BSDF sample) are stratified over a pixel's samples (:class:`StratifiedDraws`). A
 primary ray that hits an object starts a path (and ``ao_samples`` AO rays); one that hits the room first,
-or nothing, contributes 0 and lowers the pixel's coverage. Paths bounce between objects (and, in the published mode, off the room)
-up to ``max_depth`` scattering events with Russian roulette from ``rr_depth`` on. After ``spp_min``
-samples a pixel stops once the standard error of its mean luminance is below ``noise_target`` times
-its mean (with a floor for dark pixels), or at ``spp``.
+or nothing, contributes 0 and lowers the pixel's coverage. Paths bounce between objects (and, in the
+published mode, off the room) up to ``max_depth`` scattering events with Russian roulette from
+``rr_depth`` on. After ``spp_min`` samples a pixel stops once the standard error of its mean luminance
+is below ``noise_target`` times its mean (with a floor for dark pixels), or at ``spp``.
 
 The room's radiance comes from photos taken without the objects. In the fit lighting, where the fit also
 gives the room's albedo, an object path that meets the room near the objects sees it less the direct
@@ -162,6 +162,9 @@ class PathDraws:
     def __init__(self, rng: np.random.Generator) -> None:
         self.rng = rng
 
+    def start(self, active: np.ndarray, done: int, count: int) -> None:
+        """A pass of the object tracer begins (see :meth:`StratifiedDraws.start`); nothing is drawn ahead."""
+
     def camera(self, n: int) -> np.ndarray:
         """(n, 2) float32 jitter of the camera rays in their pixels."""
         return self.rng.random((n, 2), dtype=np.float32)
@@ -219,11 +222,10 @@ class StratifiedDraws(PathDraws):
     def __init__(self, rng: np.random.Generator, pixels: int, max_samples: int, batch: int) -> None:
         super().__init__(rng)
         self.batch = max(1, int(batch))
-        nblocks = max(1, -(-int(max_samples) // self.batch))
-        self.table = _sobol_2d(max(1, int(np.ceil(np.log2(max(nblocks * self.batch, 2))))))
+        self.nblocks = max(1, -(-int(max_samples) // self.batch))
+        self.table = _sobol_2d(max(1, int(np.ceil(np.log2(max(self.nblocks * self.batch, 2))))))
         # per pixel and group: the block the first pass takes (each later pass the next one, cyclically)
-        self.nblocks = nblocks
-        self.offset = rng.integers(0, nblocks, size=(pixels, len(self.GROUPS)))
+        self.offset = rng.integers(0, self.nblocks, size=(pixels, len(self.GROUPS)))
         self.shift = rng.random((pixels, sum(self.GROUPS)))
         self.first = np.zeros((sum(self.GROUPS), 0), np.float32)
         self.depth = 0
@@ -708,8 +710,7 @@ def render(scene: TraceScene, camera: Camera, mask: np.ndarray, settings: Render
     while active.size and done < settings.spp:
         b = min(settings.spp_batch, settings.spp - done)
         loc = np.repeat(active, b)
-        if settings.stratified:
-            draws.start(active, done, b)
+        draws.start(active, done, b)
         r = trace_paths(scene, camera, pix[loc], draws, opts, counter)
         add_rows(Ls, loc, r["L"])
         lum = r["L"] @ LUMINANCE.astype(np.float64)
