@@ -268,9 +268,14 @@ class TraceConfig:
     fit_refine: float = option(0.1, "fit lighting, third stage: each emitting cell is refined into lamps of this size, "
                                "metres, at the box or hanging up to 0.75 m below a ceiling cell where no photo saw "
                                "free space (a small spot over a table); 0 = keep the cells", min=0.0)
-    fit_albedo_shrink: float = option(1.0, "fit lighting: pull of each albedo patch toward the room's albedo level, "
-                                      "in mean points per patch (0 = each patch free: a bright table top becomes bright "
-                                      "albedo, not light; tuned on half of the Mitsuba light suite's rooms)", min=0.0)
+    fit_albedo_shrink: float = option(0.0, "fit lighting: pull of each albedo patch toward the room's albedo level, "
+                                      "in mean points per patch (0 = none: the patches sharing one albedo by colour, "
+                                      "fit_albedo_group, keep a bright table top from becoming bright albedo instead "
+                                      "of light)", min=0.0)
+    fit_albedo_group: float = option(0.03, "fit lighting: the room's surfaces whose photo chromaticity (r, g of "
+                                     "r + g + b) falls in one bin this wide, and that face one way, share one albedo "
+                                     "(one per material, seen under different light); 0 = one albedo per 0.5 m cell",
+                                     min=0.0, max=1.0)
     fit_light_colour: str = option("shared", "fit lighting: shared = the emitters the fit finds are one colour, "
                                    "fitted (a room's lamps and windows are one colour far more often than its "
                                    "walls'); free = each channel of each emitter on its own (coloured walls then "

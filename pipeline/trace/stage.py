@@ -188,6 +188,7 @@ def fit_settings(cfg: TraceConfig, width: int):
                        sparsity=cfg.fit_sparsity,
                        level_tolerance=cfg.fit_level_tolerance, max_emitters=cfg.fit_emitters,
                        refine=cfg.fit_refine, albedo_shrink=cfg.fit_albedo_shrink,
+                       albedo_group=cfg.fit_albedo_group,
                        threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale,
                        shared_colour=cfg.fit_light_colour == "shared")
 

@@ -191,7 +191,8 @@ def test_fitted_albedo_reaches_the_mesh_vertices(tmp_path):
     ratio = np.asarray(rl.summary["unseen_albedo_ratio"])
     box = rl.albedo[len(v):len(v) + rl.summary["box_cells"] * 4]
     assert np.all(ratio > 1.2), ratio
-    assert np.allclose(box, np.clip(level * ratio, 0.02, 0.95), atol=1e-6), (box[:2], level, ratio)
+    # (the summary keeps the ratio to 4 decimals)
+    assert np.allclose(box, np.clip(level * ratio, 0.02, 0.95), rtol=1e-4, atol=0), (box[:2], level, ratio)
     rl.save(tmp_path / "lights.npz")
     z = dict(np.load(tmp_path / "lights.npz"))
     del z["albedo"]
@@ -539,3 +540,127 @@ def test_albedo_level_search_reaches_dark_rooms(best):
     np.testing.assert_allclose(found[0], best, rtol=0.02)
     np.testing.assert_allclose(found[1], best, rtol=0.1)
     assert found[2] == x.min()
+
+
+def room_with_table():
+    """:func:`open_room` with a paper-thin table top (one sheet facing up, 1.2 x 0.8 m, 0.8 m high), as a
+    scan has it: no underside."""
+    from tests.pipeline.shapes import grid_quad
+
+    v, f, colors = open_room()
+    tv, tf = grid_quad((0.0, 0.0, 0.8), (0.6, 0.0, 0.0), (0.0, 0.4, 0.0), 4)   # u x v = +z: faces up
+    return np.concatenate([v, tv]), np.concatenate([f, tf + len(v)]), len(f)
+
+
+def test_the_side_of_a_sheet_no_camera_saw_sends_nothing():
+    """Rays from the floor under a paper-thin table top meet its back, which no camera saw: those hits are
+    the unseen side (and give the gather no radiance); rays from above meet the seen top; walls seen from
+    inside are seen. The cameras' votes find which side they see, flipped with the mesh's winding, and
+    neither on a mesh whose triangles face both ways."""
+    from pipeline.trace.intersect import EmbreeIntersector
+    from pipeline.trace.lightfit import _unseen_side
+
+    v, f, nf_room = room_with_table()
+    rng = np.random.default_rng(0)
+    m = 200
+    below = np.column_stack([rng.uniform(-0.5, 0.5, m), rng.uniform(-0.3, 0.3, m), np.full(m, 0.01)])
+    above = below + [0.0, 0.0, 1.6]
+    sideways = np.column_stack([np.zeros(m), np.zeros(m), rng.uniform(0.2, 2.3, m)])
+    ox = np.concatenate([below, above, sideways]).astype(np.float32)
+    dx = np.concatenate([np.tile([0.0, 0.0, 1.0], (m, 1)), np.tile([0.0, 0.0, -1.0], (m, 1)),
+                         np.tile([1.0, 0.0, 0.0], (m, 1))]).astype(np.float32)
+    want = np.r_[np.ones(m, bool), np.zeros(2 * m, bool)]
+
+    def answer(faces, side):
+        isect = EmbreeIntersector(v.astype(np.float32), faces.astype(np.int32))
+        h = isect.intersect(ox, dx)
+        assert h.hit.all()
+        p_ = v[faces]
+        tn = np.cross(p_[:, 1] - p_[:, 0], p_[:, 2] - p_[:, 0])
+        return _unseen_side(h.prim, dx, tn, len(faces), side)
+
+    np.testing.assert_array_equal(answer(f, 1), want)
+    np.testing.assert_array_equal(answer(f[:, ::-1], -1), want)       # wound the other way, seen from behind
+    assert not answer(f, 0).any()
+    # only the room's own triangles have sides: the closing box's (indices past nt) are never unseen
+    isect = EmbreeIntersector(v.astype(np.float32), f.astype(np.int32))
+    h = isect.intersect(ox[:m], dx[:m])
+    p_ = v[f]
+    tn = np.cross(p_[:, 1] - p_[:, 0], p_[:, 2] - p_[:, 0])
+    assert not _unseen_side(h.prim, dx[:m], tn, nf_room, 1).any()
+
+    colors = np.full((len(v), 3), 120, np.uint8)
+    fr = frames(6, 120)
+    settings = FitSettings(points=400, stride=2, cell=0.5, refine=0.0)
+    for faces, side in ((f, 1), (f[:, ::-1], -1)):
+        rl = fit_room_lights(v, faces, colors, fr, up=UP, rng=np.random.default_rng(0), settings=settings)
+        check_finite(rl)
+        assert rl.summary["seen_side"] == side, rl.summary["camera_sides"]
+    mixed = f.copy()
+    mixed[::2] = mixed[::2, ::-1]
+    rl = fit_room_lights(v, mixed, colors, fr, up=UP, rng=np.random.default_rng(0), settings=settings)
+    check_finite(rl)
+    assert rl.summary["seen_side"] == 0, rl.summary["camera_sides"]
+
+
+def test_relative_weights_do_not_follow_the_texture():
+    """A textured surface (albedo 0.2-1.0 at random per point) under a smooth light: one gain fitted by the
+    weighted relative least squares against the photo recovers the true gain (1) within 3 %, where weights
+    of one over each point's own value are biased low by over 10 % (the suite's fit: albedo x light
+    0.69-0.86x the photos). Neighbours are on the same surface: a crease with a 10x brighter wall does not
+    change the floor's weights."""
+    from pipeline.trace.lightfit import _relative_weights
+
+    rng = np.random.default_rng(4)
+    g = rng.uniform(0, 2, (3600, 2))
+    P = np.column_stack([g, np.zeros(len(g))])
+    N = np.tile([0.0, 0.0, 1.0], (len(P), 1))
+    light = 1.0 + 0.8 * P[:, 0]                        # smooth
+    tex = rng.uniform(0.2, 1.0, len(P))
+    photo = tex * light
+    model = tex.mean() * light                          # one albedo for the surface: the patch's
+
+    def gain(w):
+        r = w * model
+        return float(r @ (w * photo) / (r @ r))
+
+    assert abs(gain(_relative_weights(P, N, photo)) - 1.0) < 0.03
+    assert gain(1.0 / photo) < 0.9                      # the old weights, for contrast
+    # a bright wall meeting the floor along x = 0: the floor's weights stay what they were
+    wall = np.column_stack([np.zeros(len(g)), g[:, 0], g[:, 1]])
+    Pw, Nw = np.concatenate([P, wall]), np.concatenate([N, np.tile([1.0, 0.0, 0.0], (len(g), 1))])
+    ww = _relative_weights(Pw, Nw, np.concatenate([photo, 10.0 * photo]))
+    floor_only = _relative_weights(P, N, photo)
+    # (the 5 % floor term moves with the median luminance of all points; compare the medians' part)
+    inv_a = 1.0 / ww[:len(P)] - 0.05 * float(np.median(np.concatenate([photo, 10.0 * photo])))
+    inv_b = 1.0 / floor_only - 0.05 * float(np.median(photo))
+    np.testing.assert_allclose(inv_a, inv_b, rtol=1e-6)
+
+
+def test_albedo_groups_join_one_material_under_different_light():
+    """Cells of one paint, lit 1x to 8x, share one albedo; a wood of another colour, and the same paint on
+    a surface facing another way, get their own. With ``albedo_group = 0`` each cell is its own."""
+    from pipeline.trace.lightfit import _chromaticity_groups, _patch_keys
+
+    rng = np.random.default_rng(1)
+    paint, wood = np.array([0.6, 0.55, 0.5]), np.array([0.45, 0.25, 0.1])
+    P, N, L, what = [], [], [], []
+    for i, (alb, normal, light) in enumerate([(paint, (1, 0, 0), 1.0), (paint, (1, 0, 0), 3.0),
+                                              (paint, (1, 0, 0), 8.0), (wood, (1, 0, 0), 3.0),
+                                              (paint, (0, 0, 1), 3.0)]):
+        p = np.column_stack([np.zeros(50), rng.uniform(0, 0.4, 50) + i, rng.uniform(0, 0.4, 50)])
+        P.append(p)
+        N.append(np.tile(normal, (50, 1)).astype(np.float64))
+        L.append(alb * light * rng.uniform(0.95, 1.05, (50, 1)))    # a little texture, no chroma change
+        what.append(np.full(50, i))
+    P, N, L, what = map(np.concatenate, (P, N, L, what))
+    keyp = _patch_keys(P, N, 0.5)
+    _, cell = np.unique(keyp, axis=0, return_inverse=True)
+    cell = cell.ravel()
+    assert cell.max() + 1 == 5
+    group, ng = _chromaticity_groups(cell, keyp, L, 0.03)
+    assert ng == 3
+    first = [group[what == i][0] for i in range(5)]
+    assert all(np.all(group[what == i] == first[i]) for i in range(5))
+    assert first[0] == first[1] == first[2]
+    assert len({first[0], first[3], first[4]}) == 3
