@@ -25,16 +25,16 @@ Yu et al., "Inverse Global Illumination" (SIGGRAPH 1999), reduced to what a CPU 
    ``rho`` shows ``L = rho / pi * (E_known + A e)``: ``E_known`` is the irradiance from the room's known
    radiance (cosine-weighted hemisphere rays against mesh + box, the mesh's colours where they hit it;
    nothing from the side of a triangle no camera saw: a table top is one sheet, and its unseen back must
-   not light the floor under it with the top's colour), ``A e`` the irradiance from the unknown emitters (their area sampled explicitly, with visibility
-   through the room's own geometry, so the shadows furniture casts in the photos say where light comes
-   from). Albedo is one RGB value per patch of the mesh, clamped to ``ALBEDO_RANGE``: a patch joins the
-   cells of ``albedo_cell`` metres facing one of six directions whose photo chromaticity falls in one bin
-   of ``albedo_group`` (one material seen under different light, :func:`_chromaticity_groups`). The fit
-   alternates non-negative least squares for ``e`` (relative error, weighed by the photo's level around
-   each point, :func:`_relative_weights`; an L1 prior on emitted power: few, bright emitters) with the
-   albedo, over a search
-   of the albedo's overall level, the one thing a diffuse image cannot tell from the light's strength
-   on its own: the light the known surfaces send each other (``E_known``) pins it.
+   not light the floor under it with the top's colour), ``A e`` the irradiance from the unknown emitters
+   (their area sampled explicitly, with visibility through the room's own geometry, so the shadows
+   furniture casts in the photos say where light comes from). Albedo is one RGB value per patch of the
+   mesh, clamped to ``ALBEDO_RANGE``: a patch joins the cells of ``albedo_cell`` metres facing one of six
+   directions whose photo chromaticity falls in one bin of ``albedo_group`` (one material seen under
+   different light, :func:`_chromaticity_groups`). The fit alternates non-negative least squares for
+   ``e`` (relative error, weighed by the photo's level around each point, :func:`_relative_weights`; an
+   L1 prior on emitted power: few, bright emitters) with the albedo, over a search of the albedo's
+   overall level, the one thing a diffuse image cannot tell from the light's strength on its own: the
+   light the known surfaces send each other (``E_known``) pins it.
    Stage 2 lets only the cells that carry most of that light emit (the rest reflect) and takes each
    channel's level at the residual's minimum. Patch albedos may be pulled toward the level
    (``albedo_shrink`` pseudo-points per patch; 0 by default). With an albedo per cell, each cell explains
@@ -810,7 +810,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                      "camera_sides": sides.tolist()}
     # the side of the mesh's triangles the cameras see (+1 front, -1 back, 0 either): a scan is a shell
     # seen from inside, and a table top or a shelf is one sheet with no underside. A ray from the floor
-    # below that meets the sheet's unseen side must not take the lit top's colour (see _fit_room_lights)
+    # below that meets the sheet's unseen side must not take the lit top's colour (the gathers below)
     seen_side = (1 if sides[0] >= SIDE_SHARE * sides.sum() else -1 if sides[1] >= SIDE_SHARE * sides.sum() else 0)
     summary["seen_side"] = seen_side
     # a known light emits on one side only (as the trace stage samples it): one that turns its back on every
