@@ -774,7 +774,10 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         exposures.append(expo)
         lin /= expo
         if on_mesh.any():
-            back = np.sum(tn[hits.prim[on_mesh]] * d[on_mesh], axis=1) > 0
+            # > 0: the ray met the triangle's back (its normal's side away from the camera)
+            facing = np.zeros(pix.size)
+            facing[on_mesh] = np.sum(tn[hits.prim[on_mesh]] * d[on_mesh], axis=1)
+            back = facing[on_mesh] > 0
             sides += [int((~back).sum()), int(back.sum())]
             tri = F[hits.prim[on_mesh]]
             np.add.at(seen, tri.ravel(), 1)
@@ -787,8 +790,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             good = okm[(lin[okm] @ LUMINANCE_F64) > DARK_LEVEL * scale_r]
             if good.size:
                 prim = hits.prim[good]
-                n = tn[prim]
-                n = n * -np.sign(np.sum(n * d[good], axis=1, keepdims=True) + 1e-30)
+                n = tn[prim] * -np.sign(facing[good, None] + 1e-30)
                 obs_p.append(o[good] + hits.t[good, None] * d[good])
                 obs_n.append(n)
                 obs_L.append(lin[good])

@@ -639,7 +639,7 @@ def test_relative_weights_do_not_follow_the_texture():
 
 def test_albedo_groups_join_one_material_under_different_light():
     """Cells of one paint, lit 1x to 8x, share one albedo; a wood of another colour, and the same paint on
-    a surface facing another way, get their own. With ``albedo_group = 0`` each cell is its own."""
+    a surface facing another way, get their own."""
     from pipeline.trace.lightfit import _chromaticity_groups, _patch_keys
 
     rng = np.random.default_rng(1)
