@@ -418,21 +418,26 @@ def _resolve_path(key: str, value: str, kind: str, base: Path) -> str:
 
 def _build_table(name: str, cls: type, raw: Any, base: Path) -> Any:
     if not isinstance(raw, dict):
-        raise ConfigError(f"[{name}] must be a table, got {raw!r}")
+        raise ConfigError(f"[{name}] must be a table, got {raw!r}", key=name)
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(raw) - set(fields))
     if unknown:
-        raise ConfigError(f"unknown key {name}.{unknown[0]}; valid keys in [{name}]: {', '.join(fields)}")
+        raise ConfigError(f"unknown key {name}.{unknown[0]}; valid keys in [{name}]: {', '.join(fields)}",
+                          key=f"{name}.{unknown[0]}")
     kwargs = {}
     for key, value in raw.items():
         meta = fields[key].metadata
-        v = _coerce(f"{name}.{key}", value, hints[key], meta)
-        if meta.get("path"):
-            if isinstance(v, tuple):
-                v = tuple(_resolve_path(f"{name}.{key}", x, meta["path"], base) for x in v)
-            else:
-                v = _resolve_path(f"{name}.{key}", v, meta["path"], base)
+        try:
+            v = _coerce(f"{name}.{key}", value, hints[key], meta)
+            if meta.get("path"):
+                if isinstance(v, tuple):
+                    v = tuple(_resolve_path(f"{name}.{key}", x, meta["path"], base) for x in v)
+                else:
+                    v = _resolve_path(f"{name}.{key}", v, meta["path"], base)
+        except ConfigError as e:
+            e.key = f"{name}.{key}"
+            raise
         kwargs[key] = v
     return cls(**kwargs)
 
@@ -451,7 +456,7 @@ def build_config(raw: dict, *, base_dir: str | Path = ".") -> Config:
         raise ConfigError(f"config must be a table of tables, got {type(raw).__name__}")
     unknown = sorted(set(raw) - set(TABLES))
     if unknown:
-        raise ConfigError(f"unknown table [{unknown[0]}]; valid tables: {', '.join(TABLES)}")
+        raise ConfigError(f"unknown table [{unknown[0]}]; valid tables: {', '.join(TABLES)}", key=unknown[0])
     base = Path(base_dir).resolve()
     raw = _with_preset(raw)
     return Config(**{name: _build_table(name, TABLES[name], raw.get(name, {}), base) for name in TABLES})
@@ -465,7 +470,7 @@ def _with_preset(raw: dict) -> dict:
     name = run.get("preset", "default") if isinstance(run, dict) else "default"
     if name not in PRESETS:
         raise ConfigError(f"run.preset = {name!r}: not a valid choice; valid: "
-                          f"{', '.join(map(repr, PRESETS))}")
+                          f"{', '.join(map(repr, PRESETS))}", key="run.preset")
     merged = {table: dict(values) for table, values in PRESETS[name].items()}
     for table, values in raw.items():
         if isinstance(values, dict) and isinstance(merged.get(table), dict):
@@ -504,13 +509,25 @@ def load_config(path: str | Path | None, overrides: list[str] | tuple[str, ...] 
         except UnicodeDecodeError as e:
             raise ConfigError(f"{p}: not a UTF-8 text file ({e.reason}); is this a TOML config?") from None
         base = p.resolve().parent
+    set_by: dict[str, str] = {}     # what --set gave: "table.key" (and a table it brought) -> its text
     for text in overrides:
         table, key, value = parse_override(text)
+        if table not in raw:
+            set_by[table] = text
         raw.setdefault(table, {})
         if not isinstance(raw[table], dict):
             raise ConfigError(f"--set {text!r}: [{table}] is not a table")
         raw[table][key] = value
-    return build_config(raw, base_dir=base)
+        set_by[f"{table}.{key}"] = text
+    try:
+        return build_config(raw, base_dir=base)
+    except ConfigError as e:
+        # say where the bad key or value came from: the file, or the command line
+        if e.key in set_by:
+            raise ConfigError(f"--set {set_by[e.key]!r}: {e}", key=e.key) from None
+        if path is not None:
+            raise ConfigError(f"{path}: {e}", key=e.key) from None
+        raise
 
 
 def config_to_dict(cfg: Config) -> dict:

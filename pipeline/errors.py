@@ -14,7 +14,12 @@ class UserError(Exception):
 
 
 class ConfigError(UserError):
-    """A bad configuration value, key or file (exit code 2)."""
+    """A bad configuration value, key or file (exit code 2). ``key``: the ``table.key`` (or table) it is
+    about, where there is one, so that the loader can say whether the config file or ``--set`` gave it."""
+
+    def __init__(self, message: str, key: str | None = None):
+        super().__init__(message)
+        self.key = key
 
 
 class InputError(UserError):

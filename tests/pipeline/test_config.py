@@ -71,6 +71,27 @@ def test_missing_and_malformed_files(tmp_path):
         load_config(binary)
 
 
+def test_errors_say_whether_the_file_or_set_gave_the_bad_key(tmp_path):
+    p = tmp_path / "mine.toml"
+    p.write_text('[run]\nsed = 1\n[trace]\nspp = 8\n')
+    with pytest.raises(ConfigError) as e:
+        load_config(p)
+    assert str(e.value).startswith(f"{p}: unknown key run.sed")
+    p.write_text('[trace]\nspp = 8\n')
+    for text, words in [("run.seed=abc", ["--set 'run.seed=abc'", "run.seed = 'abc'", "integer"]),
+                        ("trace.nope=1", ["--set 'trace.nope=1'", "unknown key trace.nope", "valid keys"]),
+                        ("foo.bar=1", ["--set 'foo.bar=1'", "unknown table [foo]"])]:
+        with pytest.raises(ConfigError) as e:
+            load_config(p, [text])
+        assert all(w in str(e.value) for w in words), str(e.value)
+        assert str(p) not in str(e.value)
+    # a bad value in the file is the file's, even with a good --set beside it
+    p.write_text('[trace]\nspp = -3\n')
+    with pytest.raises(ConfigError) as e:
+        load_config(p, ["run.seed=2"])
+    assert str(e.value).startswith(f"{p}: trace.spp = -3")
+
+
 def test_reference_lists_every_key():
     ref = reference_markdown()
     for f in dataclasses.fields(Config):
