@@ -125,13 +125,21 @@ def interact(scene: TraceScene, hits: Hits, dirs: np.ndarray) -> Surface:
     return Surface(p=p, ng=ng, ns=ns, inst=inst, prim=prim, albedo=alb)
 
 
-def emission_at(scene: TraceScene, prim: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """(R, 3) float32 emitted radiance at barycentric points of triangles ``prim``."""
+def emission_at(scene: TraceScene, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
+                dirs: np.ndarray | None = None) -> np.ndarray:
+    """(R, 3) float32 emitted radiance at barycentric points of triangles ``prim``; with the rays' directions
+    ``dirs``, 0 where a ray meets a room triangle on the side it sends nothing to (``scene.tri_side``)."""
     f = scene.faces[prim]
     E = scene.emission
     u = u[:, None]
     v = v[:, None]
-    return (1 - u - v) * E[f[:, 0]] + u * E[f[:, 1]] + v * E[f[:, 2]]
+    Le = (1 - u - v) * E[f[:, 0]] + u * E[f[:, 1]] + v * E[f[:, 2]]
+    if dirs is not None and scene.tri_side is not None:
+        side = scene.tri_side[prim]
+        away = (side != 0) & (side * _dot(scene.tri_normal[prim], dirs) > 0)
+        if away.any():
+            Le[away] = 0
+    return Le
 
 
 def material(scene: TraceScene, s: Surface) -> bsdf.Material:
@@ -306,7 +314,7 @@ def _emission(scene: TraceScene, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
               one_sided: bool) -> np.ndarray:
     """(R, 3) float32 emitted radiance towards rays ``dirs`` that hit ``prim``; 0 from an emitter's back
     side when ``one_sided``."""
-    Le = emission_at(scene, prim, u, v)
+    Le = emission_at(scene, prim, u, v, dirs)
     if not one_sided:
         return Le
     front = _dot(scene.tri_normal[prim], dirs) < 0

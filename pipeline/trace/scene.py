@@ -58,6 +58,10 @@ class TraceScene:
     env_map: np.ndarray | None = None  # (h, w, 3) float32 equirectangular radiance of escaping rays, or None
     up: np.ndarray | None = None       # (3,) world up vector, the env_map's axis
     spheres: tuple[np.ndarray, np.ndarray] | None = None  # instances' bounding spheres: centres (N, 3), radii (N,)
+    # (T,) int8 or None: the side a room triangle sends its radiance to (+1 its front, the winding normal's
+    # side; -1 its back; 0 both). A scan is a shell of sheets seen from one side: a ray meeting a table
+    # top from below must not take the lit top's colour (fit lighting: the cameras' side vote)
+    tri_side: np.ndarray | None = None
 
     def escape_radiance(self, dirs: np.ndarray) -> np.ndarray:
         """Radiance (N, 3) float32 seen by rays ``dirs (N, 3)`` that leave the scene."""
@@ -300,6 +304,15 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
     tn /= np.maximum(np.linalg.norm(tn, axis=1, keepdims=True), 1e-30)
     tri_emits = (E[F].max(axis=(1, 2)) > 0) if len(F) else np.zeros(0, bool)
     tri_scatters = (tri_inst_all >= 1) | ((alb_all[F].max(axis=(1, 2)) > 0) if len(F) else np.zeros(0, bool))
+    tri_side = None
+    if lighting == "fit" and int(room_lights.summary.get("seen_side", 0)) != 0:
+        # the scan mesh's triangles send light to the side the cameras saw (as in the fit's gathers); the
+        # sampled lights (clipped regions, lamps) and the closing box stay two-sided, as the lights are
+        # sampled both ways (next-event estimation and a hit must agree on what a light sends)
+        tri_side = np.zeros(len(F), np.int8)
+        nm = int(room_lights.num_mesh_tris)
+        tri_side[:nm] = int(room_lights.summary["seen_side"])
+        tri_side[:nm][np.asarray(room_lights.light_tri, bool)[:nm]] = 0
     log.debug("trace scene: %d triangles (%d room), %d area lights, %d point lights",
               len(F), nrt, area.count, pts.count)
     return TraceScene(vertices=V, faces=F, normals=np.concatenate(norms).astype(np.float32),
@@ -311,4 +324,4 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
                       intersector=EmbreeIntersector(V, F), tri_normal=tn.astype(np.float32),
                       tri_emits=tri_emits, tri_scatters=tri_scatters,
                       env_map=(None if env_map is None or lighting != "scan" else np.asarray(env_map, np.float32)),
-                      up=None if up is None else np.asarray(up, np.float64), spheres=spheres)
+                      up=None if up is None else np.asarray(up, np.float64), spheres=spheres, tri_side=tri_side)

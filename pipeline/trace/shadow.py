@@ -35,6 +35,7 @@ import numpy as np
 
 from pipeline.color import LUMINANCE_F64
 from pipeline.trace.intersect import EmbreeIntersector, Intersector, offset_origins
+from pipeline.trace.pbr import emission_at
 from pipeline.camera import Camera
 from pipeline.trace.sampling import cosine_hemisphere, to_world
 from pipeline.trace.scene import TraceScene, instance_spheres, sphere_cover
@@ -55,10 +56,7 @@ def _room_radiance(scene: TraceScene, room_isect: Intersector, org: np.ndarray,
     L = np.array(scene.escape_radiance(dirs), np.float64)
     hit = hr.hit
     if hit.any():
-        E = scene.emission
-        fr = scene.faces[hr.prim[hit]]
-        a, b = hr.u[hit][:, None], hr.v[hit][:, None]
-        L[hit] = (1 - a - b) * E[fr[:, 0]] + a * E[fr[:, 1]] + b * E[fr[:, 2]]
+        L[hit] = emission_at(scene, hr.prim[hit], hr.u[hit], hr.v[hit], dirs[hit])
         if scene.area_lights.count:
             hi = np.flatnonzero(hit)
             L[hi[scene.area_lights.prob_of_tri[hr.prim[hi]] > 0]] = 0.0

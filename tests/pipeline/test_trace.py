@@ -697,3 +697,29 @@ def test_object_shadows_are_off_without_albedo_or_samples():
     assert object_shadows(scene, ri, oi, None, samples=4, min_effect=0.04) is None
     scene, albedo = _shadow_scene()
     assert object_shadows(scene, ri, oi, albedo, samples=0, min_effect=0.04) is None
+
+
+@pytest.mark.parametrize("seen_side, lights, expect", [(1, False, 0.0), (-1, False, 0.2), (0, False, 0.2),
+                                                        (1, True, 0.2)])
+def test_fitted_room_sends_light_only_to_the_side_the_cameras_saw(seen_side, lights, expect):
+    """A scan is a shell of sheets seen from one side: a ray meeting a table top from below must not take
+    the lit top's colour. Here the whole room is wound outward, so the side vote decides alone: +1 (the
+    cameras saw the fronts, i.e. the room from outside) leaves the sphere inside in the dark; -1 and 0
+    (both sides) light it as a furnace of 0.2. Lights (clipped regions) stay two-sided, as next-event
+    estimation samples them both ways."""
+    from pipeline.trace.lightfit import RoomLights
+
+    rv, rf = box_room((-2, -3, -2), (2, 3, 2), n=4)
+    rf = np.ascontiguousarray(rf[:, ::-1])           # box_room winds inward; this room faces out
+    rl = RoomLights(vertices=rv.astype(np.float32), faces=rf.astype(np.int32),
+                    radiance=np.full((len(rv), 3), 0.2, np.float32), light_tri=np.full(len(rf), lights),
+                    num_mesh_vertices=len(rv), num_mesh_tris=len(rf), summary={"seen_side": seen_side})
+    sc = build_scene(np.zeros((0, 3)), np.zeros((0, 3), np.int32), None, [sphere_object(specular=0.0)],
+                     lighting="fit", room_lights=rl)
+    fb = render(sc, camera(), np.ones((36, 48), bool), RenderSettings(spp=8, spp_min=8), np.random.default_rng(0))
+    px = fb.pbr[_interior(fb)]
+    assert px.size > 300
+    if expect == 0.0:
+        assert px.max() == 0.0
+    else:
+        assert abs(px.mean() - expect) < expect * TRACE_FURNACE_REL_TOL
