@@ -193,13 +193,24 @@ def fit_settings(cfg: TraceConfig, width: int):
                        shared_colour=cfg.fit_light_colour == "shared")
 
 
+@functools.lru_cache(maxsize=None)
+def fit_code() -> str:
+    """sha256 of the light fit's source (pipeline/trace/lightfit.py), part of the fitted lights' cache key: a run
+    resumed after the fit changed fits again instead of reading an earlier version's lights.npz back."""
+    import hashlib
+
+    from pipeline.trace import lightfit
+
+    return hashlib.sha256(Path(lightfit.__file__).read_bytes()).hexdigest()
+
+
 def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, stamps: tuple, threads: int = 1):
     """The scan's fitted lights (:func:`pipeline.trace.lightfit.fit_room_lights`), once per scan.
 
-    Kept in ``RUN/trace/<scene>/lights.npz`` with the key it was made for (the fit's settings, the seed,
-    and the contents of scan.json, the frames table and the room mesh): a worker or a later run with the
-    same key reads it, anything else fits again (the same bytes for the same key: writers racing write the
-    same file).
+    Kept in ``RUN/trace/<scene>/lights.npz`` with the key it was made for (the fit's settings and source
+    (:func:`fit_code`), the seed, and the contents of scan.json, the frames table and the room mesh): a worker
+    or a later run with the same key reads it, anything else fits again (the same bytes for the same key:
+    writers racing write the same file).
     """
     import hashlib
     import json
@@ -215,7 +226,7 @@ def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, sta
         return hashlib.sha256(q.read_bytes()).hexdigest() if q.is_file() else ""
 
     files = [digest(s[0]) for s in stamps] + ([digest(cfg.lights_file)] if cfg.lights_file else [])
-    key = hashlib.sha256(json.dumps([repr(st), cfg.photo_frames, seed, files], sort_keys=True).encode()
+    key = hashlib.sha256(json.dumps([repr(st), cfg.photo_frames, seed, files, fit_code()], sort_keys=True).encode()
                          ).hexdigest()[:16]
     out = path(run_dir, ROOM_LIGHTS_TPATH, scene=scan.name)
     if out.is_file():

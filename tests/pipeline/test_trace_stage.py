@@ -365,3 +365,28 @@ def test_stage_measures_the_photos_exposure_against_the_mesh_colours(tmp_path, l
     exp = float(load_npz(FrameKey("room", 0, 0).path(run, TRACE_TPATH))["exposure"])
     ratio = float(srgb_to_linear(np.uint8(level)) / srgb_to_linear(np.uint8(180)))
     assert ratio == pytest.approx(want, abs=1e-3) and exp == pytest.approx(ratio, rel=1e-4)
+
+
+def test_fitted_lights_are_kept_per_scan_and_fitted_again_when_the_fit_changes(tmp_path, monkeypatch):
+    from pipeline.runfolder import load_scan, room_trace_mesh
+    from pipeline.scanformats.mesh import read_room_ply
+    from pipeline.trace import stage
+    from pipeline.trace.lightfit import RoomLights
+
+    run = tmp_path / "run"
+    _make_run(run, photo_level=150)
+    cfg = _ctx(run, fit_points=400).cfg
+    scan = load_scan(run, "room")
+    rv, rf, rc = read_room_ply(room_trace_mesh(run, scan))
+    stamps = stage._stamps(StageContext(run_dir=run, cfg=cfg, stage="trace"), "room")
+    out = run / "trace" / "room" / "lights.npz"
+
+    def fit():
+        stage.room_lights(str(run), scan, rv, rf, rc, cfg.trace, 0, stamps)
+        return RoomLights.load(out).summary["key"], out.stat().st_mtime_ns
+
+    key, made = fit()
+    assert fit() == (key, made)                    # read back, not fitted again
+    monkeypatch.setattr(stage, "fit_code", lambda: "another version of lightfit.py")
+    key2, made2 = fit()
+    assert key2 != key and made2 != made           # an earlier version's lights are not read back
