@@ -135,8 +135,7 @@ def emission_at(scene: TraceScene, prim: np.ndarray, u: np.ndarray, v: np.ndarra
     v = v[:, None]
     Le = (1 - u - v) * E[f[:, 0]] + u * E[f[:, 1]] + v * E[f[:, 2]]
     if dirs is not None and scene.tri_side is not None:
-        side = scene.tri_side[prim]
-        away = (side != 0) & (side * _dot(scene.tri_normal[prim], dirs) > 0)
+        away = scene.tri_side[prim] * _dot(scene.tri_normal[prim], dirs) > 0   # side 0: never away
         if away.any():
             Le[away] = 0
     return Le
