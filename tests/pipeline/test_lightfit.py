@@ -664,3 +664,38 @@ def test_albedo_groups_join_one_material_under_different_light():
     assert all(np.all(group[what == i] == first[i]) for i in range(5))
     assert first[0] == first[1] == first[2]
     assert len({first[0], first[3], first[4]}) == 3
+
+
+def test_level_search_picks_what_the_whole_grid_picks_from_fewer_levels():
+    """The level searches evaluate every other level, then the neighbours of what they pick, until each
+    channel's pick has both neighbours: on curves that fall and then rise (three channels with their minima
+    at different levels, at either end of the grid, between two grid levels, and a flat-bottomed one where
+    the tolerance rule reaches past the minimum), the lowest level, the parabola through it and the highest
+    level within the tolerance are the whole grid's, and levels are left out."""
+    from pipeline.trace.lightfit import ALBEDO_LEVELS, _curve_minimum, _level_search
+
+    x = np.asarray(ALBEDO_LEVELS)
+    rng = np.random.default_rng(5)
+    curves = [lambda v, b=b, p=p: np.abs(np.log(v / b)) ** p + 1.0
+              for b in (0.05, 0.085, 0.1, 0.33, 0.61, 0.85, 0.9) for p in (1.0, 2.0)]
+    curves.append(lambda v: np.maximum(np.abs(v - 0.4) - 0.1, 0.0) + 1.0)           # flat from 0.3 to 0.5
+    for trial in range(30):
+        chans = [curves[i] for i in rng.choice(len(curves), 3)]
+        calls = []
+
+        def evaluate(v, chans=chans):
+            calls.append(v)
+            return np.array([c(v) for c in chans])
+
+        full = np.stack([evaluate(v) for v in x])
+        calls.clear()
+        got = _level_search(evaluate, None, tolerance=0.05)
+        assert len(calls) == len(set(calls)) < len(x)
+        done = np.isfinite(got[:, 0])
+        np.testing.assert_array_equal(got[done], full[done])
+        assert np.array_equal(np.argmin(got, axis=0), np.argmin(full, axis=0))
+        np.testing.assert_array_equal(_curve_minimum(x, got), _curve_minimum(x, full))
+        for c in range(3):
+            ok_full = np.flatnonzero(full[:, c] <= full[:, c].min() * 1.05).max()
+            ok_got = np.flatnonzero(got[:, c] <= got[:, c].min() * 1.05).max()
+            assert ok_got == ok_full, (trial, c)
