@@ -50,8 +50,10 @@ Yu et al., "Inverse Global Illumination" (SIGGRAPH 1999), reduced to what a CPU 
    prior picks among them, the level is searched again with the lamps pinned (a parabola through the
    lowest residuals), and the chosen lamps are refitted without the prior. A 10 cm spot 1.2 m above a
    table is then found there, not smeared over a 0.4 m ceiling cell 0.65 m higher.
-   Stage 1 and stage 3's choice among the lamps (the searches over all unknowns, the fit's cost) use
-   every other point; stage 2's and 3's levels and the chosen emitters' power use all of them. Each level search evaluates every other level of the grid, then the levels next
+   Stage 1 (the search over all unknowns) uses every other point, stage 3's choice among its ~900 lamps
+   every fourth (half their shadow rays, the fit's largest single cost: the 7-Scenes kitchen's fit 28 -> 24
+   CPU s, the suite's objects PSNR within run-seed noise); stage 2's and 3's levels and the chosen emitters'
+   power use all of them. Each level search evaluates every other level of the grid, then the levels next
    to what it picks (:func:`_level_search`: the whole grid's answer where the objective falls and then
    rises, from 11-13 of its 19 levels). The level is
    the noisiest thing the fit finds: on the suite, 8000 points this way held each room's objects PSNR
@@ -1087,8 +1089,8 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         light the unseen cells, if given), and the known light at the points: direct, reflected once more by
         the unseen cells, and sent by the unknowns ``fixed`` at their lower bound. Only the columns asked for
         are multiplied out: A (M x) costs the points x K per column, (A M) the points x K x K. ``rows``:
-        all points (None), or ``srows``."""
-        Ar, Ekr = (A, Ek) if rows is None else (A1, Ek[srows])
+        all points (None), or a subset (``srows``, stage 3's ``crows``)."""
+        Ar, Ekr = (A, Ek) if rows is None else (A1, Ek[srows]) if rows is srows else (A[rows], Ek[rows])
         ua = unseen(level).tolist()
         Ms = {a: transport(a) for a in set(ua)}
         Mc = [Ms[a] for a in ua]
@@ -1129,8 +1131,11 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                                         cameras, eps)
         if len(quads) == 0:
             return None
-        Ac = _quad_columns(isect, P[srows], N[srows], quads, qn, S, rng, eps, pool)   # the choice among them
-        cnc = np.linalg.norm(Ac, axis=0)
+        # the choice among them on every other point of stage 1's (half the shadow rays of ~900 candidates,
+        # the fit's largest single cost); their norms as if on stage 1's points
+        crows = srows[::2] if len(srows) >= 2 * MIN_FIT_POINTS else srows
+        Ac = _quad_columns(isect, P[crows], N[crows], quads, qn, S, rng, eps, pool)
+        cnc = np.linalg.norm(Ac, axis=0) * np.sqrt(len(srows) / len(crows))
         # stage 1's sliver rule, per unit area: a lamp the points see far less of than its size says (a box
         # square behind a wall, seen through a gap in the mesh) is priced as a lamp of its size seen like the
         # median cell, and dropped under 2 % of that. Without it, lamp_in_view (4000 points, seed 0) took
@@ -1156,9 +1161,10 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         lbj = np.concatenate([lb[regions], np.zeros((len(quads), 3))])
         lamj = np.concatenate([lam_k[regions], lam_c])
         # the prior per unit of light sent to the points as in stage 1: its scale from stage 1's columns
-        scale0 = float(np.mean(np.sum((A1[:, active] * (w[srows] * PRIOR_ALBEDO / np.pi)[:, None]) ** 2, axis=0)))
-        _, Ekc, cols = problem(level, np.arange(len(quads)), Ac, rows=srows)
-        ej, _, _, _ = alternate(level, Ekc, cols, lbj, lamj, st.sparsity, 3, scale0, rows=srows)
+        scale0 = float(np.mean(np.sum((A[np.ix_(crows, active)] * (w[crows] * PRIOR_ALBEDO / np.pi)[:, None]) ** 2,
+                                      axis=0)))
+        _, Ekc, cols = problem(level, np.arange(len(quads)), Ac, rows=crows)
+        ej, _, _, _ = alternate(level, Ekc, cols, lbj, lamj, st.sparsity, 3, scale0, rows=crows)
         pw = (ej[nr:] @ LUMINANCE_F64) * _quad_area(quads)
         if pw.sum() <= 0:
             return None
