@@ -248,7 +248,8 @@ class TraceConfig:
                                 "balance that sets the radiance of directions no photo saw; 0 = env_radiance "
                                 "there", min=0.0, max=1.0)
     fit_points: int = option(16000, "fit lighting: room points the photos saw that the light fit explains at most "
-                             "(drawn at random; where the light comes from is found on every other one, its power "
+                             "(drawn at random; where the light comes from is found on every other one, the choice among "
+                             "the third stage's lamps on every fourth, its power "
                              "and the albedo level on all: with 2000 a suite room's objects PSNR moved by up to 7 dB "
                              "from one run seed to another, with 4000 by up to 1.5 dB, with 8000 by up to 1.3 dB; "
                              "16000 lit the tuned rooms' objects 0.5 dB better than 8000 over three seeds, the fit "
