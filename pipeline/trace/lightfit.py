@@ -392,6 +392,12 @@ def _curve_minimum(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return out
 
 
+def _within(y: np.ndarray, tolerance: float) -> np.ndarray:
+    """(levels, C) bool: the levels whose objective ``y (levels, C)`` is within ``tolerance`` of each column's
+    lowest (stage 1 takes the highest of them)."""
+    return y <= y.min(axis=0) * (1 + tolerance)
+
+
 def _level_search(evaluate, pool, tolerance: float | None = None) -> np.ndarray:
     """(len(ALBEDO_LEVELS), 3) objective ``evaluate(level)`` (3,) of each channel on the level grid, inf where
     it was not needed: every other level first, then the levels next to what the search picks from them, until
@@ -407,12 +413,9 @@ def _level_search(evaluate, pool, tolerance: float | None = None) -> np.ndarray:
         for i, v in zip(todo, _in_order([functools.partial(evaluate, ALBEDO_LEVELS[i]) for i in todo], pool)):
             y[i], done[i] = v, True
         need = set()
+        ok = _within(y, tolerance) if tolerance is not None else None
         for c in range(3):
-            lo = int(np.argmin(y[:, c]))
-            picks = [lo]
-            if tolerance is not None:
-                ok = y[:, c] - y[lo, c] <= tolerance * abs(y[lo, c])
-                picks.append(int(np.flatnonzero(ok).max()))
+            picks = [int(np.argmin(y[:, c]))] + ([int(np.flatnonzero(ok[:, c]).max())] if ok is not None else [])
             need.update(j for i in picks for j in (i - 1, i + 1) if 0 <= j < m and not done[j])
         todo = sorted(need)
     return y
@@ -1213,7 +1216,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             return fit_at(np.full(3, lv), iters=2, **kw)[2]
 
         res_curve = _level_search(functools.partial(objective, rows=srows), pool, st.level_tolerance)  # (levels, 3)
-        ok = res_curve <= res_curve.min(axis=0) * (1 + st.level_tolerance)
+        ok = _within(res_curve, st.level_tolerance)
         level1 = np.asarray(ALBEDO_LEVELS)[[int(np.flatnonzero(ok[:, c]).max()) for c in range(3)]]
         summary["stage1_residuals"] = _finite(res_curve @ LUMINANCE_F64, 3)
         (e, Lu, E), rho, _ = fit_at(level1, iters=3, rows=srows)
