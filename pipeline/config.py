@@ -281,6 +281,11 @@ class TraceConfig:
                                    "fitted (a room's lamps and windows are one colour far more often than its "
                                    "walls'); free = each channel of each emitter on its own (coloured walls then "
                                    "come out lit by coloured lamps)", choices=("shared", "free"))
+    fit_white_prior: float = option(0.1, "fit lighting, last stage: pull of the fitted light's colour toward the "
+                                    "photos' white, against each channel's own best albedo level (the objective "
+                                    "is nearly flat there and the light's colour follows the level steeply: deep "
+                                    "red walls otherwise come out lit red); 0 = each channel's own minimum",
+                                    min=0.0)
     lights_file: str = option("", "fit lighting: JSON file of emitters you know, [{\"corners\": 4 x [x, y, z] world "
                               "metres, \"radiance\": [r, g, b] linear, 1 = sensor white}]; each emits on the side "
                               "its corners turn counter-clockwise around (normal (c1 - c0) x (c2 - c0)); they light the "

@@ -73,7 +73,15 @@ one colour, fitted over the three channels together (``shared_colour``, :func:`_
 the colour that explains several surfaces under one light, and the objects' own colours are lit in the
 photo's colour space; no grey-world assumption is made. Solved channel by channel, each channel put its
 light wherever it explained its own surfaces best: the suite's coloured room came out lit by a pure-red
-and a pure-green lamp, each on the wall of the other colour.
+and a pure-green lamp, each on the wall of the other colour. The light's colour itself follows from the
+three channels' albedo levels, and each channel's objective is nearly flat about its minimum (the true
+light sits within 0.1-2.6 % of it on the suite) while the light's power goes about as the inverse square of
+the level: with each channel at its own minimum, the coloured room's deep red walls came out lit red (power
+1.26 / 0.44 / 0.53 of the truth's). The last stage therefore takes the levels with a prior pulling the
+light's colour toward the photos' white (``white_prior``, :func:`_white_levels`): a prior on the light, not
+on the surfaces' average (grey world would make those walls' light redder still), that gives way where a
+channel's objective is steep. Projecting the shared colour onto the Planckian locus at fixed levels instead
+(tried before, lighting_seeds.json: not kept) left the levels, and with them the room's albedo, where they were.
 
 Cost (640x480, 8 photos, 16000 points): 10-20 CPU seconds on the light suite; computed once per scan and kept in
 ``RUN/trace/<scene>/lights.npz``.
@@ -139,6 +147,7 @@ class FitSettings:
     refine: float = 0.1         # stage 3: metres, size of the lamps the emitting cells are refined into (0 = off)
     radiance_scale: float = 1.0  # the trace stage's: radiance = this x linear colour
     shared_colour: bool = True  # every emitter found is one colour (fitted); False: each channel on its own
+    white_prior: float = 0.1    # last stage: pull of the emitters' colour toward the photos' white (0 = off)
 
 
 @dataclass(frozen=True)
@@ -390,6 +399,49 @@ def _curve_minimum(x: np.ndarray, y: np.ndarray) -> np.ndarray:
             if a > 0:
                 out[c] = float(np.clip(-b / (2 * a), x0, x2))
     return out
+
+
+def _white_levels(res: np.ndarray, power: np.ndarray, prior: float, fine: int = 400) -> np.ndarray:
+    """(3,) albedo level per channel minimising ``sum_c res_c(l_c) / min res_c + prior x sum_c (log P_c(l_c) -
+    mean_c log P_c(l_c))^2``: each channel's objective ``res (len(ALBEDO_LEVELS), 3)`` relative to its lowest,
+    plus a pull of the light's colour (the emitted power ``power`` per channel at each level) toward the
+    photos' white. Both are interpolated in log level through the levels
+    evaluated (finite ``res``, positive ``power``) by cubic splines (a monotone one would put each minimum on a
+    level evaluated, losing what the parabola of :func:`_curve_minimum` finds between them); the channels
+    couple only through the mean, which is
+    searched on a grid. Each channel's own minimum (:func:`_curve_minimum`) where ``prior`` is 0 or a channel
+    has fewer than three such levels.
+
+    Why: each channel's objective is nearly flat about its minimum (on the light suite the true light sits
+    within 0.1-2.6 % of it), while the light's power goes about as the inverse square of the level, so
+    each channel's own minimum left the light's colour to a few per cent of residual: in the coloured room
+    the red walls' light came out red (power 1.26 / 0.44 / 0.53 of the truth's). A room's light is far more
+    often near the white the camera was balanced for than the colour of its walls, and where a channel's
+    objective is steep (a warm lamp under white walls) the data still decides."""
+    from scipy.interpolate import CubicSpline
+
+    lv = np.asarray(ALBEDO_LEVELS, np.float64)
+    res = np.asarray(res, np.float64)
+    power = np.asarray(power, np.float64)
+    ok = np.isfinite(res) & np.isfinite(power) & (power > 0)
+    if prior <= 0 or (ok.sum(axis=0) < 3).any():
+        return _curve_minimum(lv, res)
+    lo = max(float(np.log(lv[ok[:, c]]).min()) for c in range(3))
+    hi = min(float(np.log(lv[ok[:, c]]).max()) for c in range(3))
+    if hi <= lo:
+        return _curve_minimum(lv, res)
+    xf = np.linspace(lo, hi, fine)
+    g = np.empty((fine, 3))
+    y = np.empty((fine, 3))
+    for c in range(3):
+        x = np.log(lv[ok[:, c]])
+        g[:, c] = CubicSpline(x, res[ok[:, c], c] / res[ok[:, c], c].min())(xf)
+        y[:, c] = CubicSpline(x, np.log(power[ok[:, c], c]))(xf)
+    ms = np.linspace(y.min(), y.max(), fine)
+    f = g[None] + prior * (y[None] - ms[:, None, None]) ** 2        # (means, fine, 3)
+    i = f.argmin(axis=1)                                           # (means, 3)
+    tot = np.take_along_axis(f, i[:, None, :], axis=1)[:, 0].sum(axis=1)
+    return np.exp(xf[i[int(np.argmin(tot))]])
 
 
 def _within(y: np.ndarray, tolerance: float) -> np.ndarray:
@@ -1180,12 +1232,18 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         # with the lamps where they are, each channel's albedo level again at the residual's minimum
         summary["stage2_level"] = [float(x) for x in level]
 
+        area_j = np.concatenate([area_k[regions], _quad_area(quads[keep])])
+        power3 = np.full((len(ALBEDO_LEVELS), 3), np.nan)     # emitted power per channel at each level tried
+
         def objective3(lv: float) -> np.ndarray:
             _, Ekc, cols = problem(np.full(3, lv), keep, Akeep)
-            return alternate(np.full(3, lv), Ekc, cols, lbj[js], lamj[js], 0.0, 2)[3]
+            ej3, _, _, obj = alternate(np.full(3, lv), Ekc, cols, lbj[js], lamj[js], 0.0, 2)
+            power3[ALBEDO_LEVELS.index(lv)] = area_j @ ej3
+            return obj
 
         res3 = _level_search(objective3, pool)
-        level = _curve_minimum(np.asarray(ALBEDO_LEVELS), res3)
+        summary["stage3_level_data"] = [round(float(x), 4) for x in _curve_minimum(np.asarray(ALBEDO_LEVELS), res3)]
+        level = _white_levels(res3, power3, st.white_prior)
         Mc, Ekc, cols = problem(level, keep, Akeep)
         ej, rho3, E3, obj3 = alternate(level, Ekc, cols, lbj[js], lamj[js], 0.0, 5)
         e3 = lb.copy()
@@ -1234,19 +1292,28 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             keep = order[:max(1, int(np.searchsorted(cum, st.support_share)) + 1)][:st.max_emitters]
             sup = np.union1d(np.intersect1d(keep, active), np.intersect1d(np.arange(box_unknown.size, K), active))
             if sup.size:
-                res2 = _level_search(functools.partial(objective, active=sup, sparsity=0.0), pool)
+                power2 = np.full((len(ALBEDO_LEVELS), 3), np.nan)   # emitted power per channel at each level
+
+                def objective2(lv: float) -> np.ndarray:
+                    (e2, _, _), _, obj = fit_at(np.full(3, lv), iters=2, active=sup, sparsity=0.0)
+                    power2[ALBEDO_LEVELS.index(lv)] = area_k @ e2
+                    return obj
+
+                res2 = _level_search(objective2, pool)
                 best_level = np.asarray(ALBEDO_LEVELS)[np.argmin(res2, axis=0)]
                 (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0)
                 summary["stage1_level"] = [float(x) for x in level1]
                 summary["level_residuals_rgb"] = [_finite(r) for r in (res2 / res2.min(axis=0)).T]
                 summary["support_cells"] = int(sup.size)
                 res_curve = res2
-                if st.refine > 0:
-                    lamps = refine(np.asarray(best_level), sup)
-                    if lamps is not None:
-                        summary["stage2_residual"] = round(float(obj2 @ LUMINANCE_F64), 3)
-                        summary["stage3_residual"] = round(float(lamps[-1] @ LUMINANCE_F64), 3)
-                        e, Lu, E, rho, lamp_q, lamp_n, lamp_e, best_level, res_curve, _ = lamps
+                lamps = refine(np.asarray(best_level), sup) if st.refine > 0 else None
+                if lamps is not None:
+                    summary["stage2_residual"] = round(float(obj2 @ LUMINANCE_F64), 3)
+                    summary["stage3_residual"] = round(float(lamps[-1] @ LUMINANCE_F64), 3)
+                    e, Lu, E, rho, lamp_q, lamp_n, lamp_e, best_level, res_curve, _ = lamps
+                elif st.white_prior > 0:   # stage 2 is the last: its levels with the light's colour prior
+                    best_level = _white_levels(res2, power2, st.white_prior)
+                    (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0)
         if len(E) < n:   # no second stage: stage 1's answer, fitted to all the points
             (e, Lu, E), rho, _ = fit_at(level1, iters=3)
         best_level = [float(x) for x in best_level]

@@ -190,7 +190,7 @@ def fit_settings(cfg: TraceConfig, width: int):
                        refine=cfg.fit_refine, albedo_shrink=cfg.fit_albedo_shrink,
                        albedo_group=cfg.fit_albedo_group,
                        threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale,
-                       shared_colour=cfg.fit_light_colour == "shared")
+                       shared_colour=cfg.fit_light_colour == "shared", white_prior=cfg.fit_white_prior)
 
 
 @functools.lru_cache(maxsize=None)

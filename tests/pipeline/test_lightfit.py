@@ -699,3 +699,46 @@ def test_level_search_picks_what_the_whole_grid_picks_from_fewer_levels():
             ok_full = np.flatnonzero(full[:, c] <= full[:, c].min() * 1.05).max()
             ok_got = np.flatnonzero(got[:, c] <= got[:, c].min() * 1.05).max()
             assert ok_got == ok_full, (trial, c)
+
+
+@pytest.mark.parametrize("steep", [0.002, 0.05, 50.0])
+def test_white_prior_sets_the_lights_colour_where_the_data_does_not(steep):
+    """Each channel's objective is nearly flat about its minimum while the light's power goes as the inverse
+    square of the albedo level: the prior on the light's colour decides where the data cannot and gives way
+    where it can. On analytic curves (the levels' search leaving some out, as it does), the levels chosen
+    minimise the objective plus prior as a brute-force search over the three channels' levels does; with a
+    flat objective the light comes out white, with a steep one each channel keeps its own minimum, and
+    without the prior the choice is each channel's own minimum (the parabola), as before."""
+    from pipeline.trace.lightfit import ALBEDO_LEVELS, _curve_minimum, _level_search, _white_levels
+
+    x = np.asarray(ALBEDO_LEVELS)
+    best = np.array([0.3, 0.45, 0.4])       # each channel's own minimum
+    white = np.array([0.3, 0.25, 0.2])      # the levels at which the light is white
+    prior = 0.1
+
+    def res(v):
+        return 1.0 + steep * np.log(np.asarray(v) / best) ** 2
+
+    def logp(v):
+        return np.log((white / np.asarray(v)) ** 2)
+
+    got_res = _level_search(lambda v: res(np.full(3, v)), None)
+    assert np.isinf(got_res).any()
+    power = np.where(np.isfinite(got_res), np.exp(logp(x[:, None] * np.ones(3))), np.nan)
+    lv = _white_levels(got_res, power, prior)
+
+    def total(l3):     # (..., 3) levels -> objective + prior, exactly
+        lp = logp(l3)
+        return np.sum(res(l3), axis=-1) + prior * np.sum((lp - lp.mean(axis=-1, keepdims=True)) ** 2, axis=-1)
+
+    g = np.exp(np.linspace(np.log(0.05), np.log(0.85), 70))
+    grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1)
+    brute = float(total(grid).min())
+    assert total(lv) <= brute + 1e-4 * steep + 1e-6
+    lp = logp(lv)
+    if steep <= 0.002:        # the data barely prefers anything: the light is white
+        assert np.ptp(lp) < 0.05
+        assert np.ptp(logp(best)) > 0.5
+    if steep >= 50.0:         # the data decides
+        np.testing.assert_allclose(lv, best, rtol=0.02)
+    np.testing.assert_array_equal(_white_levels(got_res, power, 0.0), _curve_minimum(x, got_res))
