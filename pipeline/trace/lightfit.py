@@ -405,12 +405,11 @@ def _white_levels(res: np.ndarray, power: np.ndarray, prior: float, fine: int = 
     """(3,) albedo level per channel minimising ``sum_c res_c(l_c) / min res_c + prior x sum_c (log P_c(l_c) -
     mean_c log P_c(l_c))^2``: each channel's objective ``res (len(ALBEDO_LEVELS), 3)`` relative to its lowest,
     plus a pull of the light's colour (the emitted power ``power`` per channel at each level) toward the
-    photos' white. Both are interpolated in log level through the levels
-    evaluated (finite ``res``, positive ``power``) by cubic splines (a monotone one would put each minimum on a
-    level evaluated, losing what the parabola of :func:`_curve_minimum` finds between them); the channels
-    couple only through the mean, which is
-    searched on a grid. Each channel's own minimum (:func:`_curve_minimum`) where ``prior`` is 0 or a channel
-    has fewer than three such levels.
+    photos' white. Both are interpolated in log level through the levels evaluated (finite ``res``, positive
+    ``power``) by cubic splines (a monotone one would put each minimum on a level evaluated, losing what the
+    parabola of :func:`_curve_minimum` finds between them); the channels couple only through the mean, which
+    is searched on a grid. Each channel's own minimum (:func:`_curve_minimum`) where ``prior`` is 0 or a
+    channel has fewer than three such levels.
 
     Why: each channel's objective is nearly flat about its minimum (on the light suite the true light sits
     within 0.1-2.6 % of it), while the light's power goes about as the inverse square of the level, so
