@@ -77,7 +77,7 @@ and a pure-green lamp, each on the wall of the other colour. The light's colour 
 three channels' albedo levels, and each channel's objective is nearly flat about its minimum (the true
 light sits within 0.1-2.6 % of it on the suite) while the light's power goes about as the inverse square of
 the level: with each channel at its own minimum, the coloured room's deep red walls came out lit red (power
-1.26 / 0.44 / 0.53 of the truth's). The last stage therefore takes the levels with a prior pulling the
+1.21 / 0.58 / 0.58 of the truth's). The last stage therefore takes the levels with a prior pulling the
 light's colour toward the photos' white (``white_prior``, :func:`_white_levels`): a prior on the light, not
 on the surfaces' average (grey world would make those walls' light redder still), that gives way where a
 channel's objective is steep. Projecting the shared colour onto the Planckian locus at fixed levels instead
@@ -414,7 +414,7 @@ def _white_levels(res: np.ndarray, power: np.ndarray, prior: float, fine: int = 
     Why: each channel's objective is nearly flat about its minimum (on the light suite the true light sits
     within 0.1-2.6 % of it), while the light's power goes about as the inverse square of the level, so
     each channel's own minimum left the light's colour to a few per cent of residual: in the coloured room
-    the red walls' light came out red (power 1.26 / 0.44 / 0.53 of the truth's). A room's light is far more
+    the red walls' light came out red (power 1.21 / 0.58 / 0.58 of the truth's). A room's light is far more
     often near the white the camera was balanced for than the colour of its walls, and where a channel's
     objective is steep (a warm lamp under white walls) the data still decides."""
     from scipy.interpolate import CubicSpline
