@@ -1300,6 +1300,8 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
 
                 res2 = _level_search(objective2, pool)
                 best_level = np.asarray(ALBEDO_LEVELS)[np.argmin(res2, axis=0)]
+                if st.refine <= 0 and st.white_prior > 0:   # stage 2 is the last: the light's colour prior
+                    best_level = _white_levels(res2, power2, st.white_prior)
                 (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0)
                 summary["stage1_level"] = [float(x) for x in level1]
                 summary["level_residuals_rgb"] = [_finite(r) for r in (res2 / res2.min(axis=0)).T]
@@ -1310,7 +1312,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                     summary["stage2_residual"] = round(float(obj2 @ LUMINANCE_F64), 3)
                     summary["stage3_residual"] = round(float(lamps[-1] @ LUMINANCE_F64), 3)
                     e, Lu, E, rho, lamp_q, lamp_n, lamp_e, best_level, res_curve, _ = lamps
-                elif st.white_prior > 0:   # stage 2 is the last: its levels with the light's colour prior
+                elif st.refine > 0 and st.white_prior > 0:   # stage 3 found no lamps: stage 2 is the last
                     best_level = _white_levels(res2, power2, st.white_prior)
                     (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0)
         if len(E) < n:   # no second stage: stage 1's answer, fitted to all the points
