@@ -76,6 +76,10 @@ def plan(ctx: StageContext) -> list[Item]:
             chunk = fr[i:i + n]
             items.append(Item(key=f"{DROP_TPATH.format(scene=scene, drop=drop)}/f{chunk[0]:06d}-f{chunk[-1]:06d}",
                               data={"scene": scene, "drop": drop, "frames": chunk}))
+    # the largest items first (a stable sort: drop order among equals). The workers take items in this
+    # order, so the short remainder chunks fill the last gaps instead of a full chunk running alone at the
+    # end: on the 7-Scenes kitchen (12 items) one worker sat idle for the last 8.6 s of a 100 s stage
+    items.sort(key=lambda it: -len(it.data["frames"]))
     if ctx.cfg.trace.lighting == "fit":
         # the light fit once per scene, here, before the items spread over the workers (each would fit
         # it again until the first had written it); the items read RUN/trace/<scene>/lights.npz. Nothing

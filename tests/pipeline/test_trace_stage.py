@@ -313,6 +313,25 @@ def test_frames_are_chunked_into_items_and_the_chunking_does_not_change_the_byte
     assert written[1][0] != written[1][1]  # frames draw their own samples
 
 
+def test_the_largest_items_are_planned_first(tmp_path):
+    """Workers take items in plan order: the short remainder chunks come last, where they fill the gaps a
+    full chunk running alone at the end would leave (longest first; drop order among equals)."""
+    import shutil
+
+    from pipeline.trace.stage import STAGE
+
+    run = tmp_path / "run"
+    _make_run(run)
+    src = run / "raster" / "room" / "drop0000"
+    (run / "raster" / "room" / "drop0001").mkdir()
+    for k in range(3):   # drop 0: one frame; drop 1: three
+        for ext in (".npz", ".json"):
+            shutil.copy((src / "f000000").with_suffix(ext), (src.parent / "drop0001" / f"f{k:06d}").with_suffix(ext))
+    items = STAGE.plan(_ctx(run, frames_per_item=2))
+    assert [it.key for it in items] == ["room/drop0001/f000000-f000001", "room/drop0000/f000000-f000000",
+                                        "room/drop0001/f000002-f000002"]
+
+
 def test_stage_names_an_unknown_object_id(tmp_path):
     from pipeline.trace.stage import STAGE
 
