@@ -84,6 +84,11 @@ class Stage:
     finish: Callable[[StageContext, dict[str, dict]], None] | None = None
     # A stage not built yet: runs nothing and says so. The string says which issue builds it.
     placeholder: str = ""
+    # Optional start-up of each worker process, run while ``plan`` runs in the main one (imports, reading
+    # what every item reads): a plan that takes long (trace's light fit) would otherwise leave the cores it
+    # does not use idle, and the workers would start cold after it. Writes nothing; a failure is only logged
+    # (the items meet it again and say so).
+    warm: Callable[[StageContext], None] | None = None
 
 
 @dataclass
@@ -185,6 +190,35 @@ def execute_item(run_dir: str, cfg_dict: dict, stage_ref: str, item: Item) -> tu
     return item.key, None, time.perf_counter() - t0
 
 
+def warm_worker(run_dir: str, cfg_dict: dict, stage_ref: str) -> None:
+    """A stage's ``warm`` in a worker process (module-level so the pool can pickle it)."""
+    try:
+        stage = get_stage(stage_ref)
+        if stage.warm is not None:
+            stage.warm(StageContext(run_dir=Path(run_dir), cfg=build_config(cfg_dict, base_dir=Path(run_dir)),
+                                    stage=stage.name))
+    except Exception as e:  # noqa: BLE001 - start-up is an optimisation; the items do the real work and say
+        log.debug("%s: worker start-up failed (%s: %s); the items will redo it", stage_ref, type(e).__name__, e)
+
+
+def _process_pool(n_workers: int) -> cf.ProcessPoolExecutor:
+    # spawn, not fork: OpenGL/Embree state must never be shared with a forked child.
+    return cf.ProcessPoolExecutor(max_workers=n_workers, mp_context=multiprocessing.get_context("spawn"))
+
+
+def _warm_pool(run_dir: Path, cfg: Config, stage: Stage, stage_ref: str,
+               cfg_dict: dict) -> cf.ProcessPoolExecutor | None:
+    """The worker processes of a stage with a ``warm`` step, started now and warming while the main process
+    plans; None where the stage has none or runs its items elsewhere (Ray, one worker)."""
+    n = worker_count(cfg)
+    if stage.warm is None or cfg.run.executor == "ray" or n <= 1:
+        return None
+    pool = _process_pool(n)
+    for _ in range(n):   # one submission per worker: the pool starts a process for each
+        pool.submit(warm_worker, str(run_dir), cfg_dict, stage_ref)
+    return pool
+
+
 def _ray():
     try:
         import ray
@@ -249,6 +283,23 @@ def run_stage(run_dir: Path, cfg: Config, stage: Stage,
         log.warning("stage %s is a PLACEHOLDER and did nothing: %s", stage.name, stage.placeholder)
         return report
     ctx = StageContext(run_dir=run_dir, cfg=cfg, stage=stage.name)
+    cfg_dict = config_to_dict(cfg)
+    pool = _warm_pool(run_dir, cfg, stage, stage_ref, cfg_dict)
+    try:
+        return _run_planned(run_dir, cfg, stage, stage_ref, cfg_dict, ctx, report, t0, pool, on_progress)
+    except BaseException:
+        # Interrupted (Ctrl-C, SIGTERM) or failed: stop the workers now instead of letting them
+        # finish their items in the background. Finished items are kept; the ones cut short
+        # left only temp files, which the next run removes and redoes.
+        if pool is not None:
+            _terminate_workers(pool)
+        raise
+
+
+def _run_planned(run_dir: Path, cfg: Config, stage: Stage, stage_ref: str, cfg_dict: dict, ctx: StageContext,
+                 report: StageReport, t0: float, pool: cf.ProcessPoolExecutor | None,
+                 on_progress: Callable[[int, int, float], None] | None) -> StageReport:
+    """:func:`run_stage` from the plan on; ``pool``: the stage's warm worker processes, if started."""
     try:
         items = stage.plan(ctx)
     except Exception as e:  # noqa: BLE001 - a stage that cannot plan fails alone; the run reports it
@@ -259,6 +310,8 @@ def run_stage(run_dir: Path, cfg: Config, stage: Stage,
         log.error("%s could not list its work: %s", stage.name, msg)
         report.failed, report.failures = 1, {"(plan)": msg}
         report.seconds = time.perf_counter() - t0
+        if pool is not None:
+            _terminate_workers(pool)
         return report
     (run_dir / stage.name / ITEMS_DIR / PLAN_FAILED).unlink(missing_ok=True)
     keys = [it.key for it in items]
@@ -284,27 +337,23 @@ def run_stage(run_dir: Path, cfg: Config, stage: Stage,
         if on_progress:
             on_progress(finished, report.total, time.perf_counter() - t0)
 
-    cfg_dict = config_to_dict(cfg)
     n_workers = min(worker_count(cfg), max(1, len(todo)))
-    if cfg.run.executor == "ray" and todo:
+    if pool is not None and not todo:
+        _terminate_workers(pool)   # warm, but nothing left to do
+    elif cfg.run.executor == "ray" and todo:
         for res in _run_on_ray(cfg, str(run_dir), cfg_dict, stage_ref, todo):
             record(*res)
-    elif n_workers <= 1:
+    elif n_workers <= 1 and pool is None:
         for it in todo:
             record(*execute_item(str(run_dir), cfg_dict, stage_ref, it))
     else:
-        # spawn, not fork: OpenGL/Embree state must never be shared with a forked child.
-        ctx_mp = multiprocessing.get_context("spawn")
-        pool = cf.ProcessPoolExecutor(max_workers=n_workers, mp_context=ctx_mp)
+        pool = pool or _process_pool(n_workers)
         try:
             futs = [pool.submit(execute_item, str(run_dir), cfg_dict, stage_ref, it) for it in todo]
             for fut in cf.as_completed(futs):
                 record(*fut.result())
         except BaseException:
-            # Interrupted (Ctrl-C, SIGTERM) or failed: stop the workers now instead of letting them
-            # finish their items in the background. Finished items are kept; the ones cut short
-            # left only temp files, which the next run removes and redoes.
-            _terminate_workers(pool)
+            _terminate_workers(pool)   # see run_stage
             raise
         pool.shutdown(wait=True)
     report.problems = item_problems(run_dir, stage.name, set(keys))

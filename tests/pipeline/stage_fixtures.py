@@ -48,3 +48,29 @@ def _plan_user(ctx):
 
 PLAN_BUG = Stage(name="planbug", plan=_plan_bug, run_item=_run)
 PLAN_USER = Stage(name="planuser", plan=_plan_user, run_item=_run)
+
+
+def _warm(ctx):
+    """Leaves a file named after the worker's pid (a real stage's warm writes nothing; this one is a probe)."""
+    if os.environ.get("SS_TEST_WARM_FAILS"):
+        raise RuntimeError("warm-up broke")
+    (ctx.run_dir / "warm").mkdir(parents=True, exist_ok=True)
+    (ctx.run_dir / "warm" / str(os.getpid())).write_text("")
+
+
+def _plan_waiting_for_warm(ctx):
+    """A slow plan (trace's light fit): returns once every worker has warmed, or after 60 s."""
+    want = ctx.cfg.run.workers if ctx.cfg.run.workers > 1 else 0   # one worker: no pool, nothing warms
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 60 and len(list((ctx.run_dir / "warm").glob("*"))) < want:
+        time.sleep(0.05)
+    return _plan(ctx)
+
+
+def _run_noting_pid(ctx, item):
+    out = _run(ctx, item)
+    out["pid"] = os.getpid()
+    return out
+
+
+WARMED = Stage(name="warmed", plan=_plan_waiting_for_warm, run_item=_run_noting_pid, warm=_warm)

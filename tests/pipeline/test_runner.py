@@ -83,3 +83,34 @@ def test_a_stage_that_cannot_plan_is_reported_not_raised(tmp_path):
     assert (tmp_path / "planbug" / "_items" / "_plan.failed.json").is_file()
     rep = run_stage(tmp_path, build_config({}), PLAN_USER)
     assert rep.failed == 1 and rep.failures["(plan)"].startswith("scan folder /x")
+
+
+def test_workers_warm_up_while_the_plan_runs_and_then_do_the_items(tmp_path, monkeypatch):
+    """A stage with a ``warm`` step (trace: imports and the room mesh while the main process fits the lights)
+    starts its workers before planning: the plan here returns only once both workers have warmed (it would
+    wait 60 s and leave no warm files if they started after it), and those same processes do the items.
+    The bytes are those of a run without the warm step; a warm step that fails costs nothing."""
+    from tests.pipeline.stage_fixtures import WARMED
+
+    ref = "tests.pipeline.stage_fixtures:WARMED"
+    cfg = build_config({"run": {"workers": 2, "seed": 3}})
+    run = tmp_path / "warm_run"
+    rep = run_stage(run, cfg, WARMED, stage_ref=ref)
+    assert (rep.done, rep.failed) == (6, 0)
+    warmed = {int(p.name) for p in (run / "warm").iterdir()}
+    assert len(warmed) == 2
+    assert {r["pid"] for r in item_results(run, "warmed").values()} <= warmed
+    plain = tmp_path / "plain"
+    run_stage(plain, build_config({"run": {"workers": 1, "seed": 3}}), WARMED, stage_ref=ref)  # no pool, no warm
+    assert not (plain / "warm").exists()
+    npz = sorted((run / "warmed" / "scene").glob("*.npz"))
+    assert [p.read_bytes() for p in npz] == [(plain / "warmed" / "scene" / p.name).read_bytes() for p in npz]
+
+    monkeypatch.setenv("SS_TEST_WARM_FAILS", "1")
+    broken = tmp_path / "broken"
+    (broken / "warm").mkdir(parents=True)
+    for fake in ("1", "2"):   # lets the plan go on (the warm step leaves nothing)
+        (broken / "warm" / fake).write_text("")
+    rep = run_stage(broken, cfg, WARMED, stage_ref=ref)
+    assert (rep.done, rep.failed) == (6, 0)
+    assert {p.name for p in (broken / "warm").iterdir()} == {"1", "2"}
