@@ -89,8 +89,8 @@ Cost (640x480, 8 photos, 16000 points): 10-20 CPU seconds on the light suite; co
 
 from __future__ import annotations
 
+import collections
 import functools
-import itertools
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -247,9 +247,11 @@ def _at(values: np.ndarray, faces: np.ndarray, prim: np.ndarray, u: np.ndarray, 
     return (1 - u - v) * values[f[:, 0]] + u * values[f[:, 1]] + v * values[f[:, 2]]
 
 
-def _gather(isect, points: np.ndarray, normals: np.ndarray, rays: int, rng: np.random.Generator, eps: float):
-    """``rays`` cosine-weighted hemisphere rays from each point: (owner (R,) point index, hits, directions)."""
-    from pipeline.trace.intersect import offset_origins
+def _gather(isect, points: np.ndarray, normals: np.ndarray, rays: int, rng: np.random.Generator, eps: float,
+            pool=None):
+    """``rays`` cosine-weighted hemisphere rays from each point: (owner (R,) point index, hits, directions);
+    cast in parts on ``pool``'s threads if given (the same hits)."""
+    from pipeline.trace.intersect import Hits, offset_origins
     from pipeline.trace.sampling import cosine_hemisphere, to_world
 
     owner = np.repeat(np.arange(len(points)), rays)
@@ -257,7 +259,12 @@ def _gather(isect, points: np.ndarray, normals: np.ndarray, rays: int, rng: np.r
     dl, _ = cosine_hemisphere(u[0], u[1])
     n = normals[owner]
     d = to_world(dl, n).astype(np.float32)
-    return owner, isect.intersect(offset_origins(points[owner].astype(np.float32), n.astype(np.float32), d, eps), d), d
+    o = offset_origins(points[owner].astype(np.float32), n.astype(np.float32), d, eps)
+    if pool is None:
+        return owner, isect.intersect(o, d), d
+    cuts = np.linspace(0, len(o), 5).astype(int)   # four parts: two threads each cast two
+    parts = _in_order([functools.partial(isect.intersect, o[a:b], d[a:b]) for a, b in zip(cuts[:-1], cuts[1:])], pool)
+    return owner, Hits(*(np.concatenate([getattr(h, f) for h in parts]) for f in ("t", "prim", "u", "v"))), d
 
 
 def _unseen_side(prim: np.ndarray, d: np.ndarray, tn: np.ndarray, nt: int, seen_side: int) -> np.ndarray:
@@ -321,17 +328,18 @@ def _nnls(Q: np.ndarray, g: np.ndarray, lam: np.ndarray) -> np.ndarray:
 
 def _solve_emission(rho_pt: np.ndarray, Ek: np.ndarray, A_ch, L: np.ndarray, w: np.ndarray,
                     lb: np.ndarray, lam_k: np.ndarray, sparsity: float, scale: float | None = None,
-                    shared_colour: bool = False) -> tuple[np.ndarray, float]:
+                    shared_colour: bool = False, pool=None) -> tuple[np.ndarray, float]:
     """Emission (K, 3) >= lb minimising the weighted residual of ``L = rho/pi (Ek + A e)`` plus an L1 prior
     on emitted power (``sparsity x scale x lam_k``; ``scale`` by default the columns' data scale at
     ``PRIOR_ALBEDO``); returns it and the prior's value per channel (3,). ``shared_colour``: the emission
     above the lower bound is one colour for every unknown (:func:`_shared_colour`), else each channel is
-    solved on its own."""
+    solved on its own. The channels' products and solves run on ``pool``'s threads if given (the caller's
+    own thread must not be one of them)."""
     K = A_ch[0].shape[1]
     e = np.zeros((K, 3))
     cost = np.zeros(3)
-    parts = []
-    for ch in range(3):
+
+    def channel(ch: int) -> tuple:
         A = A_ch[ch]
         s = w * rho_pt[:, ch] / np.pi                   # row scale
         B = A * s[:, None]
@@ -344,10 +352,13 @@ def _solve_emission(rho_pt: np.ndarray, Ek: np.ndarray, A_ch, L: np.ndarray, w: 
         sc = (scale if scale is not None else
               float(np.mean(np.sum((A * (w * PRIOR_ALBEDO / np.pi)[:, None]) ** 2, axis=0))) if K else 1.0)
         lam = sparsity * sc * lam_k
-        x = _nnls(Q, g, lam)
+        return (B, y, Q, g, lam), _nnls(Q, g, lam)
+
+    parts = []
+    for ch, (part, x) in enumerate(_in_order([functools.partial(channel, ch) for ch in range(3)], pool)):
         e[:, ch] = lb[:, ch] + x
-        cost[ch] = float(lam @ x)          # the prior's part of the objective (the data part: the caller's)
-        parts.append((B, y, Q, g, lam))
+        cost[ch] = float(part[4] @ x)      # the prior's part of the objective (the data part: the caller's)
+        parts.append(part)
     if shared_colour and K:
         x, col = _shared_colour(parts, e - lb)
         e = lb + x[:, None] * col[None, :]
@@ -631,11 +642,24 @@ def _in_order(jobs: list, pool) -> list:
 
 def _fill_columns(out: np.ndarray, samples: int, jobs, pool) -> np.ndarray:
     """``out[:, c]``: the mean over ``samples`` of each ``(c, job)`` that ``jobs`` yields (a generator that
-    draws its random numbers as it goes, so in order); ``COLUMN_CHUNK`` jobs at a time on ``pool``."""
-    it = iter(jobs)
-    while chunk := list(itertools.islice(it, COLUMN_CHUNK)):
-        for (c, _), g in zip(chunk, _in_order([job for _, job in chunk], pool)):
-            out[:, c] = g.reshape(out.shape[0], samples).mean(axis=1)
+    draws its random numbers as it goes, so in order). On ``pool``'s threads, at most ``COLUMN_CHUNK`` jobs
+    ahead of the oldest unfinished one: this thread draws the next jobs' samples while the pool traces
+    (drawing them between chunks left the pool idle for 1.4 of the kitchen fit's 17 s)."""
+    def put(c: int, g: np.ndarray) -> None:
+        out[:, c] = g.reshape(out.shape[0], samples).mean(axis=1)
+
+    if pool is None:
+        for c, job in jobs:
+            put(c, job())
+        return out
+    ahead: collections.deque = collections.deque()
+    for c, job in jobs:
+        ahead.append((c, pool.submit(job)))
+        if len(ahead) > COLUMN_CHUNK:
+            c0, fut = ahead.popleft()
+            put(c0, fut.result())
+    for c0, fut in ahead:
+        put(c0, fut.result())
     return out
 
 
@@ -987,7 +1011,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
 
     # known irradiance: cosine-weighted rays against mesh + box
     M = st.gather_rays
-    pr, hh, dg = _gather(isect, P, N, M, rng, eps)
+    pr, hh, dg = _gather(isect, P, N, M, rng, eps, pool)
     Lg = np.zeros((pr.size, 3))
     hit = np.flatnonzero(hh.hit)
     Lg[hit] = _at(vrad, AF, hh.prim[hit], hh.u[hit], hh.v[hit])
@@ -1042,7 +1066,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     nbu = box_unknown.size
     if nbu:
         Mu = max(16, M // 2)
-        ku, hu, du = _gather(isect, bcen[box_unknown], bnrm[box_unknown], Mu, rng, eps)
+        ku, hu, du = _gather(isect, bcen[box_unknown], bnrm[box_unknown], Mu, rng, eps, pool)
         hit = np.flatnonzero(hu.hit)
         hit = hit[~_unseen_side(hu.prim[hit], du[hit], tn, nt, seen_side)]
         tri = hu.prim[hit]
@@ -1101,13 +1125,14 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     dens = float(np.median(cn[active] / np.maximum(area_k[active], 1e-12))) if active.size else 0.0
 
     def alternate(level: np.ndarray, Ekc: np.ndarray, cols: list, lbj: np.ndarray, lamj: np.ndarray,
-                  sparsity: float, iters: int, scale: float | None = None, rows: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                  sparsity: float, iters: int, scale: float | None = None, rows: np.ndarray | None = None,
+                  on=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Alternate the emission of columns ``cols`` (per channel (n, J): irradiance at the points per unit
         radiance, bounded below by ``lbj``) and the patch albedo, each channel's albedo level held at
         ``level (3,)``; ``Ekc`` the irradiance nothing fitted here sends. Returns the emission (J, 3), the
         patch albedo, the irradiance at the points and each channel's objective (channels are independent).
-        ``rows``: the points ``Ekc`` and ``cols`` are given for (all by default)."""
+        ``rows``: the points ``Ekc`` and ``cols`` are given for (all by default). ``on``: the pool for the
+        channels' solves, where this runs outside it (the fits between the level searches)."""
         pt, wr, Lr, npr, kap = patch, w, L, n_patch, kappa
         if rows is not None:
             pt, wr, Lr = patch[rows], w[rows], L[rows]
@@ -1117,7 +1142,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         ej = lbj.copy()
         l1 = np.zeros(3)
         for _ in range(iters):
-            ej, l1 = _solve_emission(rho[pt], Ekc, cols, Lr, wr, lbj, lamj, sparsity, scale, st.shared_colour)
+            ej, l1 = _solve_emission(rho[pt], Ekc, cols, Lr, wr, lbj, lamj, sparsity, scale, st.shared_colour, on)
             E = Ekc + np.stack([cols[c] @ ej[:, c] for c in range(3)], axis=1)
             rho_new = np.empty((npatch, 3))
             for ch in range(3):
@@ -1158,12 +1183,12 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         return Mc, Ae, Ekc
 
     def fit_at(level: np.ndarray, iters: int = 4, active: np.ndarray = active, sparsity: float = st.sparsity,
-               rows: np.ndarray | None = None) -> tuple[tuple, np.ndarray, np.ndarray]:
+               rows: np.ndarray | None = None, on=None) -> tuple[tuple, np.ndarray, np.ndarray]:
         """Emission of the unknowns ``active`` (the others stay at their lower bound) and albedo at each
         channel's albedo level ``level (3,)``; returns (emission, unknowns' radiance, irradiance at the
         points ``rows``), the patch albedo and each channel's objective."""
         Mc, Ae, Ekc = design(level, active, np.setdiff1d(np.arange(K), active), rows=rows)
-        ea, rho, E, obj = alternate(level, Ekc, Ae, lb[active], lam_k[active], sparsity, iters, rows=rows)
+        ea, rho, E, obj = alternate(level, Ekc, Ae, lb[active], lam_k[active], sparsity, iters, rows=rows, on=on)
         e = lb.copy()
         e[active] = ea
         ua = unseen(level)
@@ -1218,7 +1243,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         scale0 = float(np.mean(np.sum((A[np.ix_(crows, active)] * (w[crows] * PRIOR_ALBEDO / np.pi)[:, None]) ** 2,
                                       axis=0)))
         _, Ekc, cols = problem(level, np.arange(len(quads)), Ac, rows=crows)
-        ej, _, _, _ = alternate(level, Ekc, cols, lbj, lamj, st.sparsity, 3, scale0, rows=crows)
+        ej, _, _, _ = alternate(level, Ekc, cols, lbj, lamj, st.sparsity, 3, scale0, rows=crows, on=pool)
         pw = (ej[nr:] @ LUMINANCE_F64) * _quad_area(quads)
         if pw.sum() <= 0:
             return None
@@ -1244,7 +1269,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         summary["stage3_level_data"] = [round(float(x), 4) for x in _curve_minimum(np.asarray(ALBEDO_LEVELS), res3)]
         level = _white_levels(res3, power3, st.white_prior)
         Mc, Ekc, cols = problem(level, keep, Akeep)
-        ej, rho3, E3, obj3 = alternate(level, Ekc, cols, lbj[js], lamj[js], 0.0, 5)
+        ej, rho3, E3, obj3 = alternate(level, Ekc, cols, lbj[js], lamj[js], 0.0, 5, on=pool)
         e3 = lb.copy()
         e3[regions] = ej[:nr]
         el = ej[nr:]
@@ -1276,7 +1301,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         ok = _within(res_curve, st.level_tolerance)
         level1 = np.asarray(ALBEDO_LEVELS)[[int(np.flatnonzero(ok[:, c]).max()) for c in range(3)]]
         summary["stage1_residuals"] = _finite(res_curve @ LUMINANCE_F64, 3)
-        (e, Lu, E), rho, _ = fit_at(level1, iters=3, rows=srows)
+        (e, Lu, E), rho, _ = fit_at(level1, iters=3, rows=srows, on=pool)
         # the unseen cells reflect like the upper walls under this light from here on
         unseen_ratio[:] = _wall_ratio(L[srows], E, w[srows], N[srows] @ upv, P[srows] @ upv - h_low, level1)
         summary["unseen_albedo_ratio"] = [round(float(x), 4) for x in unseen_ratio]
@@ -1302,7 +1327,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                 best_level = np.asarray(ALBEDO_LEVELS)[np.argmin(res2, axis=0)]
                 if st.refine <= 0 and st.white_prior > 0:   # stage 2 is the last: the light's colour prior
                     best_level = _white_levels(res2, power2, st.white_prior)
-                (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0)
+                (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0, on=pool)
                 summary["stage1_level"] = [float(x) for x in level1]
                 summary["level_residuals_rgb"] = [_finite(r) for r in (res2 / res2.min(axis=0)).T]
                 summary["support_cells"] = int(sup.size)
@@ -1314,9 +1339,9 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                     e, Lu, E, rho, lamp_q, lamp_n, lamp_e, best_level, res_curve, _ = lamps
                 elif st.refine > 0 and st.white_prior > 0:   # stage 3 found no lamps: stage 2 is the last
                     best_level = _white_levels(res2, power2, st.white_prior)
-                    (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0)
+                    (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0, on=pool)
         if len(E) < n:   # no second stage: stage 1's answer, fitted to all the points
-            (e, Lu, E), rho, _ = fit_at(level1, iters=3)
+            (e, Lu, E), rho, _ = fit_at(level1, iters=3, on=pool)
         best_level = [float(x) for x in best_level]
         res_curve = res_curve @ LUMINANCE_F64
         note = ""
