@@ -216,15 +216,25 @@ def fit_settings(cfg: TraceConfig, width: int):
                        shared_colour=cfg.fit_light_colour == "shared", white_prior=cfg.fit_white_prior)
 
 
+# the light fit's source and the modules it computes with (pipeline/..., relative): the fitted lights' cache key
+FIT_SOURCES = ("trace/lightfit.py", "trace/photolights.py", "trace/intersect.py", "trace/sampling.py",
+               "trace/scene.py", "color.py", "geometry.py", "camera.py")
+
+
 @functools.lru_cache(maxsize=None)
 def fit_code() -> str:
-    """sha256 of the light fit's source (pipeline/trace/lightfit.py), part of the fitted lights' cache key: a run
-    resumed after the fit changed fits again instead of reading an earlier version's lights.npz back."""
+    """sha256 of the light fit's source and of the modules it computes with (:data:`FIT_SOURCES`), part of the
+    fitted lights' cache key: a run resumed after any of them changed fits again instead of reading an earlier
+    version's lights.npz back (a change elsewhere in the tracer refits too, at ~15 s per scan: safe side)."""
     import hashlib
 
-    from pipeline.trace import lightfit
+    import pipeline
 
-    return hashlib.sha256(Path(lightfit.__file__).read_bytes()).hexdigest()
+    h = hashlib.sha256()
+    root = Path(pipeline.__file__).parent
+    for name in FIT_SOURCES:
+        h.update(name.encode() + b"\0" + (root / name).read_bytes())
+    return h.hexdigest()
 
 
 def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, stamps: tuple, threads: int = 1):

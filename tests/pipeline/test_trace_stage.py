@@ -386,6 +386,22 @@ def test_stage_measures_the_photos_exposure_against_the_mesh_colours(tmp_path, l
     assert ratio == pytest.approx(want, abs=1e-3) and exp == pytest.approx(ratio, rel=1e-4)
 
 
+def test_the_fits_cache_key_covers_every_module_the_fit_computes_with():
+    """A resumed run reads back lights.npz only while the code that made it is unchanged: the key hashes
+    lightfit.py and every pipeline module it imports (reading and writing files aside)."""
+    import ast
+
+    import pipeline
+    from pipeline.trace import stage
+
+    root = Path(pipeline.__file__).parent
+    tree = ast.parse((root / "trace" / "lightfit.py").read_text())
+    used = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and (n.module or "").startswith("pipeline.")}
+    files = {m.removeprefix("pipeline.").replace(".", "/") + ".py" for m in used} - {"io.py", "errors.py"}
+    assert files and files <= set(stage.FIT_SOURCES)
+    assert "trace/lightfit.py" in stage.FIT_SOURCES and all((root / f).is_file() for f in stage.FIT_SOURCES)
+
+
 def test_fitted_lights_are_kept_per_scan_and_fitted_again_when_the_fit_changes(tmp_path, monkeypatch):
     from pipeline.runfolder import load_scan, room_trace_mesh
     from pipeline.scanformats.mesh import read_room_ply
