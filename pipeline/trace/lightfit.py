@@ -644,7 +644,7 @@ def _fill_columns(out: np.ndarray, samples: int, jobs, pool) -> np.ndarray:
     """``out[:, c]``: the mean over ``samples`` of each ``(c, job)`` that ``jobs`` yields (a generator that
     draws its random numbers as it goes, so in order). On ``pool``'s threads, at most ``COLUMN_CHUNK`` jobs
     ahead of the oldest unfinished one: this thread draws the next jobs' samples while the pool traces
-    (drawing them between chunks left the pool idle for 1.4 of the kitchen fit's 17 s)."""
+    (drawn between chunks, with the pool idle meanwhile, the kitchen fit's columns took 6.7 s, now 5.7)."""
     def put(c: int, g: np.ndarray) -> None:
         out[:, c] = g.reshape(out.shape[0], samples).mean(axis=1)
 
