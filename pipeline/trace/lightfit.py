@@ -326,12 +326,18 @@ def _nnls(Q: np.ndarray, g: np.ndarray, lam: np.ndarray) -> np.ndarray:
     return x
 
 
+def _prior_scale(A: np.ndarray, w: np.ndarray) -> float:
+    """The sparsity prior's scale for columns ``A (n, K)`` at points of weights ``w``: the data term's mean
+    column norm squared at ``PRIOR_ALBEDO`` (1 without columns)."""
+    return float(np.mean(np.sum((A * (w * PRIOR_ALBEDO / np.pi)[:, None]) ** 2, axis=0))) if A.shape[1] else 1.0
+
+
 def _solve_emission(rho_pt: np.ndarray, Ek: np.ndarray, A_ch, L: np.ndarray, w: np.ndarray,
-                    lb: np.ndarray, lam_k: np.ndarray, sparsity: float, scale: float | None = None,
+                    lb: np.ndarray, lam_k: np.ndarray, sparsity: float, scale: float | list | None = None,
                     shared_colour: bool = False, pool=None) -> tuple[np.ndarray, float]:
     """Emission (K, 3) >= lb minimising the weighted residual of ``L = rho/pi (Ek + A e)`` plus an L1 prior
-    on emitted power (``sparsity x scale x lam_k``; ``scale`` by default the columns' data scale at
-    ``PRIOR_ALBEDO``); returns it and the prior's value per channel (3,). ``shared_colour``: the emission
+    on emitted power (``sparsity x scale x lam_k``; ``scale`` one for all channels, one per channel, or by
+    default each channel's :func:`_prior_scale`, not computed where ``sparsity`` is 0); returns it and the prior's value per channel (3,). ``shared_colour``: the emission
     above the lower bound is one colour for every unknown (:func:`_shared_colour`), else each channel is
     solved on its own. The channels' products and solves run on ``pool``'s threads if given (the caller's
     own thread must not be one of them)."""
@@ -349,8 +355,8 @@ def _solve_emission(rho_pt: np.ndarray, Ek: np.ndarray, A_ch, L: np.ndarray, w: 
         # the prior's weight is the data term's scale at a fixed albedo, not at the level being tried:
         # scaled with the level (as rho^2) it priced the light a low level needs less than a high level's,
         # and the least-light level search drifted to the darkest albedo
-        sc = (scale if scale is not None else
-              float(np.mean(np.sum((A * (w * PRIOR_ALBEDO / np.pi)[:, None]) ** 2, axis=0))) if K else 1.0)
+        sc = (1.0 if sparsity == 0 else scale[ch] if isinstance(scale, (list, tuple)) else
+              scale if scale is not None else _prior_scale(A, w))
         lam = sparsity * sc * lam_k
         return (B, y, Q, g, lam), _nnls(Q, g, lam)
 
@@ -1140,6 +1146,8 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             kap = st.albedo_shrink * len(rows) / npatch
         rho = np.tile(level, (npatch, 1))
         ej = lbj.copy()
+        if scale is None and sparsity != 0:   # the prior's scale does not change with the albedo: once
+            scale = [_prior_scale(cols[c], wr) for c in range(3)]
         l1 = np.zeros(3)
         for _ in range(iters):
             ej, l1 = _solve_emission(rho[pt], Ekc, cols, Lr, wr, lbj, lamj, sparsity, scale, st.shared_colour, on)
