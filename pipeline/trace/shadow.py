@@ -98,10 +98,12 @@ def _direct_light(scene: TraceScene, room_isect: Intersector, obj_isect: Interse
     return e0, blocked
 
 
-def split_intersectors(scene: TraceScene) -> tuple[Intersector, Intersector]:
-    """Intersectors of the room alone and of the objects alone (triangle ids offset by the room's)."""
+def split_intersectors(scene: TraceScene, room: Intersector | None = None) -> tuple[Intersector, Intersector]:
+    """Intersectors of the room alone and of the objects alone (triangle ids offset by the room's). ``room``:
+    the room's, built for another scene of the same room (its triangles are the first ``num_room_tris``
+    of every such scene, whatever objects follow)."""
     nr = scene.num_room_tris
-    return (EmbreeIntersector(scene.vertices, scene.faces[:nr]),
+    return (room if room is not None else EmbreeIntersector(scene.vertices, scene.faces[:nr]),
             EmbreeIntersector(scene.vertices, scene.faces[nr:]))
 
 

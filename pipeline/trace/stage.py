@@ -281,6 +281,10 @@ def room_lights(run_dir: str, scan, rv, rf, rc, cfg: TraceConfig, seed: int, sta
     return rl
 
 
+# the room's own intersector (shadow rays), kept per worker for the next item of the same scene
+_ROOM_ISECT: dict = {}
+
+
 def run_item(ctx: StageContext, item: Item) -> dict:
     with one_blas_thread():   # the workers fill the cores (pipeline.threads)
         return _run_item(ctx, item)
@@ -294,8 +298,8 @@ def _run_item(ctx: StageContext, item: Item) -> dict:
     cfg = ctx.cfg.trace
     scene_name, drop = item.data["scene"], int(item.data["drop"])
     frames = [int(f) for f in item.data["frames"]]
-    scan, rv, rf, rc, light_v, env_map, rl = _room(str(ctx.run_dir), scene_name, cfg, ctx.cfg.run.seed,
-                                                   _stamps(ctx, scene_name))
+    stamps = _stamps(ctx, scene_name)
+    scan, rv, rf, rc, light_v, env_map, rl = _room(str(ctx.run_dir), scene_name, cfg, ctx.cfg.run.seed, stamps)
     library = {o.obj_id: o for o in load_objects(ctx.run_dir)}
     env = None if cfg.env_radiance < 0 else np.full(3, cfg.env_radiance, np.float32)
     scene = None
@@ -313,7 +317,11 @@ def _run_item(ctx: StageContext, item: Item) -> dict:
                                 published_power=cfg.published_power, up=scan.up_w,
                                 light_vertices=light_v, env_map=env_map)
             if cfg.shadow_samples > 0 or (rl is not None and cfg.object_shadows > 0):
-                split = split_intersectors(scene)
+                # the room's intersector is the same for every drop of the scene: built once per worker
+                rkey = (str(ctx.run_dir), scene_name, cfg, ctx.cfg.run.seed, stamps)
+                split = split_intersectors(scene, _ROOM_ISECT.get(rkey))
+                _ROOM_ISECT.clear()
+                _ROOM_ISECT[rkey] = split[0]
             if rl is not None:   # the fit's albedo takes the objects' shadows out of the room they see
                 osh = object_shadows(scene, *split, rl.albedo, samples=cfg.object_shadows,
                                      min_effect=cfg.shadow_min_effect)

@@ -723,3 +723,26 @@ def test_fitted_room_sends_light_only_to_the_side_the_cameras_saw(seen_side, lig
         assert px.max() == 0.0
     else:
         assert abs(px.mean() - expect) < expect * TRACE_FURNACE_REL_TOL
+
+
+def test_a_rooms_intersector_serves_every_scene_of_that_room():
+    """The trace stage builds a room's own intersector once per worker and reuses it for the next drop: that
+    holds while every scene of the room starts with the same room triangles, whatever objects follow. Rays
+    through the room and the objects' place give the same hits as the intersector built for each scene."""
+    from pipeline.trace.shadow import split_intersectors
+
+    rv, rf = box_room((-2, -2, 0), (2, 2, 2.5), n=3)
+    a = build_scene(rv, rf, None, [sphere_object(0.3, (0.0, 0.0, 1.0))])
+    b = build_scene(rv, rf, None, [sphere_object(0.2, (0.5, 0.5, 0.5)), sphere_object(0.4, (-1.0, 0.0, 1.0))])
+    room_a, _ = split_intersectors(a)
+    room_b, objs_b = split_intersectors(b, room_a)
+    assert room_b is room_a
+    rng = np.random.default_rng(0)
+    org = rng.uniform((-1.5, -1.5, 0.1), (1.5, 1.5, 2.4), (2000, 3)).astype(np.float32)   # inside the room
+    d = rng.normal(size=(2000, 3)).astype(np.float32)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    own, _ = split_intersectors(b)
+    h1, h2 = room_b.intersect(org, d), own.intersect(org, d)
+    assert h1.hit.all() and np.array_equal(h1.prim, h2.prim) and np.array_equal(h1.t, h2.t)
+    assert objs_b.intersect(org, d).hit.any()                   # the objects are b's own
+    assert np.array_equal(a.vertices[a.faces[:a.num_room_tris]], b.vertices[b.faces[:b.num_room_tris]])
