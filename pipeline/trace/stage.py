@@ -189,7 +189,8 @@ def _room_mesh(run_dir: str, scene_name: str, room_mesh: str, stamps: tuple) -> 
     scan = load_scan(run_dir, scene_name)
     rv, rf, rc = read_room_ply(room_trace_mesh(run_dir, scan, room_mesh))
     for a in (rv, rf, rc):
-        a.setflags(write=False)
+        if a is not None:   # a mesh without colours has none
+            a.setflags(write=False)
     return scan, rv, rf, rc
 
 

@@ -332,6 +332,25 @@ def test_the_largest_items_are_planned_first(tmp_path):
                                         "room/drop0001/f000002-f000002"]
 
 
+def test_a_room_mesh_without_colours_is_traced_and_warmed(tmp_path):
+    """A scan mesh without vertex colours (a bare reconstruction) plans, warms a worker and traces."""
+    from pipeline.runfolder import load_scan
+    from pipeline.scanformats.mesh import ply_bytes, read_room_ply
+    from pipeline.trace import stage
+    from pipeline.trace.stage import STAGE
+
+    run = tmp_path / "run"
+    _make_run(run)
+    mesh = load_scan(run, "room").mesh_path
+    rv, rf, _ = read_room_ply(mesh)
+    atomic_write_bytes(mesh, ply_bytes(rv, rf, None))
+    ctx = _ctx(run, spp=2, shadow_samples=2)
+    stage.warm(ctx)
+    assert stage._room_mesh(str(run), "room", "prep", stage._stamps(ctx, "room"))[3] is None
+    STAGE.run_item(ctx, STAGE.plan(ctx)[0])
+    assert load_npz(run / "trace/room/drop0000/f000000.npz")["pbr"].max() > 0
+
+
 def test_stage_names_an_unknown_object_id(tmp_path):
     from pipeline.trace.stage import STAGE
 
