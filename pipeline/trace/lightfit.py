@@ -337,10 +337,10 @@ def _solve_emission(rho_pt: np.ndarray, Ek: np.ndarray, A_ch, L: np.ndarray, w: 
                     shared_colour: bool = False, pool=None) -> tuple[np.ndarray, float]:
     """Emission (K, 3) >= lb minimising the weighted residual of ``L = rho/pi (Ek + A e)`` plus an L1 prior
     on emitted power (``sparsity x scale x lam_k``; ``scale`` one for all channels, one per channel, or by
-    default each channel's :func:`_prior_scale`, not computed where ``sparsity`` is 0); returns it and the prior's value per channel (3,). ``shared_colour``: the emission
-    above the lower bound is one colour for every unknown (:func:`_shared_colour`), else each channel is
-    solved on its own. The channels' products and solves run on ``pool``'s threads if given (the caller's
-    own thread must not be one of them)."""
+    default each channel's :func:`_prior_scale`, not computed where ``sparsity`` is 0); returns it and the
+    prior's value per channel (3,). ``shared_colour``: the emission above the lower bound is one colour for
+    every unknown (:func:`_shared_colour`), else each channel is solved on its own. The channels' products
+    and solves run on ``pool``'s threads if given (the caller's own thread must not be one of them)."""
     K = A_ch[0].shape[1]
     e = np.zeros((K, 3))
     cost = np.zeros(3)
@@ -1131,8 +1131,8 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     dens = float(np.median(cn[active] / np.maximum(area_k[active], 1e-12))) if active.size else 0.0
 
     def alternate(level: np.ndarray, Ekc: np.ndarray, cols: list, lbj: np.ndarray, lamj: np.ndarray,
-                  sparsity: float, iters: int, scale: float | None = None, rows: np.ndarray | None = None,
-                  on=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                  sparsity: float, iters: int, scale: float | list | None = None,
+                  rows: np.ndarray | None = None, on=None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Alternate the emission of columns ``cols`` (per channel (n, J): irradiance at the points per unit
         radiance, bounded below by ``lbj``) and the patch albedo, each channel's albedo level held at
         ``level (3,)``; ``Ekc`` the irradiance nothing fitted here sends. Returns the emission (J, 3), the

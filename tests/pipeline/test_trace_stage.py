@@ -415,7 +415,8 @@ def test_the_fits_cache_key_covers_every_module_the_fit_computes_with():
 
     root = Path(pipeline.__file__).parent
     tree = ast.parse((root / "trace" / "lightfit.py").read_text())
-    used = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and (n.module or "").startswith("pipeline.")}
+    used = {n.module for n in ast.walk(tree)
+            if isinstance(n, ast.ImportFrom) and (n.module or "").startswith("pipeline.")}
     files = {m.removeprefix("pipeline.").replace(".", "/") + ".py" for m in used} - {"io.py", "errors.py"}
     assert files and files <= set(stage.FIT_SOURCES)
     assert "trace/lightfit.py" in stage.FIT_SOURCES and all((root / f).is_file() for f in stage.FIT_SOURCES)
