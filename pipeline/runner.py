@@ -201,21 +201,28 @@ def warm_worker(run_dir: str, cfg_dict: dict, stage_ref: str) -> None:
         log.debug("%s: worker start-up failed (%s: %s); the items will redo it", stage_ref, type(e).__name__, e)
 
 
-def _process_pool(n_workers: int) -> cf.ProcessPoolExecutor:
+def _started() -> None:
+    """A task that only makes the pool start a worker process (which runs the pool's initializer first)."""
+
+
+def _process_pool(n_workers: int, warm: tuple | None = None) -> cf.ProcessPoolExecutor:
+    """``n_workers`` worker processes; ``warm``: ``warm_worker``'s arguments, run once in each as it starts."""
     # spawn, not fork: OpenGL/Embree state must never be shared with a forked child.
-    return cf.ProcessPoolExecutor(max_workers=n_workers, mp_context=multiprocessing.get_context("spawn"))
+    return cf.ProcessPoolExecutor(max_workers=n_workers, mp_context=multiprocessing.get_context("spawn"),
+                                  initializer=warm_worker if warm else None, initargs=warm or ())
 
 
 def _warm_pool(run_dir: Path, cfg: Config, stage: Stage, stage_ref: str,
                cfg_dict: dict) -> cf.ProcessPoolExecutor | None:
     """The worker processes of a stage with a ``warm`` step, started now and warming while the main process
-    plans; None where the stage has none or runs its items elsewhere (Ray, one worker)."""
+    plans; None where the stage has none or runs its items elsewhere (Ray, one worker). The warm step is the
+    pool's initializer, so every process runs it once, whichever tasks it later takes."""
     n = worker_count(cfg)
     if stage.warm is None or cfg.run.executor == "ray" or n <= 1:
         return None
-    pool = _process_pool(n)
-    for _ in range(n):   # one submission per worker: the pool starts a process for each
-        pool.submit(warm_worker, str(run_dir), cfg_dict, stage_ref)
+    pool = _process_pool(n, (str(run_dir), cfg_dict, stage_ref))
+    for _ in range(n):   # a process per submission (no idle one yet): all n start now
+        pool.submit(_started)
     return pool
 
 
@@ -347,6 +354,13 @@ def _run_planned(run_dir: Path, cfg: Config, stage: Stage, stage_ref: str, cfg_d
         for it in todo:
             record(*execute_item(str(run_dir), cfg_dict, stage_ref, it))
     else:
+        if pool is not None and getattr(pool, "_broken", False):
+            # a warm process died (killed, or a crash in native code): the items get a fresh pool, and say
+            # themselves what goes wrong if it was not the warm step alone
+            log.warning("%s: a worker process died while warming up (%s); starting the workers again",
+                        stage.name, pool._broken)
+            _terminate_workers(pool)
+            pool = None
         pool = pool or _process_pool(n_workers)
         try:
             futs = [pool.submit(execute_item, str(run_dir), cfg_dict, stage_ref, it) for it in todo]

@@ -74,3 +74,21 @@ def _run_noting_pid(ctx, item):
 
 
 WARMED = Stage(name="warmed", plan=_plan_waiting_for_warm, run_item=_run_noting_pid, warm=_warm)
+
+
+def _warm_dies(ctx):
+    """A worker killed while warming up (out of memory, a crash in native code): leaves a mark, then exits."""
+    (ctx.run_dir / "died").mkdir(parents=True, exist_ok=True)
+    (ctx.run_dir / "died" / str(os.getpid())).write_text("")
+    os._exit(3)
+
+
+def _plan_after_a_death(ctx):
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 60 and not list((ctx.run_dir / "died").glob("*")):
+        time.sleep(0.05)
+    time.sleep(2.0)   # the pool notices its dead worker
+    return _plan(ctx)
+
+
+WARM_DIES = Stage(name="warmdies", plan=_plan_after_a_death, run_item=_run, warm=_warm_dies)

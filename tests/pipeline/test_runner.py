@@ -114,3 +114,15 @@ def test_workers_warm_up_while_the_plan_runs_and_then_do_the_items(tmp_path, mon
     rep = run_stage(broken, cfg, WARMED, stage_ref=ref)
     assert (rep.done, rep.failed) == (6, 0)
     assert {p.name for p in (broken / "warm").iterdir()} == {"1", "2"}
+
+
+def test_a_worker_that_dies_warming_up_costs_only_its_warm_up(tmp_path):
+    """A warm worker killed during the plan (out of memory, a crash in native code) breaks the pool it was in:
+    the items run on fresh workers instead of the stage ending in a traceback."""
+    from tests.pipeline.stage_fixtures import WARM_DIES
+
+    run = tmp_path / "run"
+    rep = run_stage(run, build_config({"run": {"workers": 2}}), WARM_DIES,
+                    stage_ref="tests.pipeline.stage_fixtures:WARM_DIES")
+    assert any((run / "died").iterdir())
+    assert (rep.done, rep.failed) == (6, 0)
