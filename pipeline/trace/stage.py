@@ -195,11 +195,15 @@ def _room_mesh(run_dir: str, scene_name: str, room_mesh: str, stamps: tuple) -> 
 
 
 def warm(ctx: StageContext) -> None:
-    """A worker's start-up while the main process plans (fits the lights): the tracer's modules and each
-    scene's room mesh, which every item reads (about 1.5 CPU s per worker on 7-Scenes)."""
+    """A worker's start-up while the main process plans (fits the lights): the tracer's modules and the room
+    mesh every item of a scene reads (about 1.5 CPU s per worker on 7-Scenes), for as many scenes as
+    :func:`_room_mesh` keeps, those with the most frames first (the plan puts the largest items first)."""
+    import collections
+
     from pipeline.trace import denoise, pbr, scene, shadow  # noqa: F401 - imported for their start-up cost
 
-    for name in sorted({k.scene for k in raster_frames(ctx.run_dir)}):
+    frames = collections.Counter(k.scene for k in raster_frames(ctx.run_dir))
+    for name in sorted(frames, key=lambda sc: (-frames[sc], sc))[:_room_mesh.cache_info().maxsize]:
         _room_mesh(str(ctx.run_dir), name, ctx.cfg.trace.room_mesh, _stamps(ctx, name))
 
 
@@ -217,9 +221,11 @@ def fit_settings(cfg: TraceConfig, width: int):
                        shared_colour=cfg.fit_light_colour == "shared", white_prior=cfg.fit_white_prior)
 
 
-# the light fit's source and the modules it computes with (pipeline/..., relative): the fitted lights' cache key
+# the light fit's source, the modules it computes with and this one (which picks its photos and settings), relative
+# to pipeline/: part of the fitted lights' cache key
 FIT_SOURCES = ("trace/lightfit.py", "trace/photolights.py", "trace/intersect.py", "trace/sampling.py",
-               "trace/scene.py", "color.py", "geometry.py", "camera.py")
+               "trace/scene.py", "trace/stage.py", "color.py", "geometry.py", "camera.py", "seeding.py",
+               "scanformats/common.py")
 
 
 @functools.lru_cache(maxsize=None)
