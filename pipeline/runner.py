@@ -291,9 +291,73 @@ def run_stage(run_dir: Path, cfg: Config, stage: Stage,
         return report
     ctx = StageContext(run_dir=run_dir, cfg=cfg, stage=stage.name)
     cfg_dict = config_to_dict(cfg)
-    pool = _warm_pool(run_dir, cfg, stage, stage_ref, cfg_dict)
+    pool = _warm_pool(run_dir, cfg, stage, stage_ref, cfg_dict)   # the stage's workers, where they warm up
     try:
-        return _run_planned(run_dir, cfg, stage, stage_ref, cfg_dict, ctx, report, t0, pool, on_progress)
+        try:
+            items = stage.plan(ctx)
+        except Exception as e:  # noqa: BLE001 - a stage that cannot plan fails alone; the run reports it
+            user = isinstance(e, UserError)
+            msg = str(e) if user else f"{type(e).__name__}: {e} (bug; traceback in {PLAN_FAILED})"
+            atomic_write_json(run_dir / stage.name / ITEMS_DIR / PLAN_FAILED,
+                              {"error": msg, "user_error": user,
+                               "traceback": "" if user else traceback.format_exc()})
+            log.error("%s could not list its work: %s", stage.name, msg)
+            report.failed, report.failures = 1, {"(plan)": msg}
+            report.seconds = time.perf_counter() - t0
+            if pool is not None:
+                _terminate_workers(pool)
+            return report
+        (run_dir / stage.name / ITEMS_DIR / PLAN_FAILED).unlink(missing_ok=True)
+        keys = [it.key for it in items]
+        if len(set(keys)) != len(keys):
+            raise RuntimeError(f"stage {stage.name} planned duplicate item keys")
+        report.total = len(items)
+        todo = [it for it in items if not is_done(run_dir, stage.name, it.key)]
+        report.skipped = report.total - len(todo)
+        finished = report.skipped
+        if on_progress:
+            on_progress(finished, report.total, 0.0)
+
+        def record(key: str, err: str | None, sec: float) -> None:
+            nonlocal finished
+            finished += 1
+            if err is None:
+                report.done += 1
+                report.item_seconds.append(sec)
+            else:
+                report.failed += 1
+                report.failures[key] = err
+                log.error("%s %s failed: %s", stage.name, key, err)
+            if on_progress:
+                on_progress(finished, report.total, time.perf_counter() - t0)
+
+        n_workers = min(worker_count(cfg), max(1, len(todo)))
+        if pool is not None and not todo:
+            _terminate_workers(pool)   # warm, but nothing left to do
+        elif cfg.run.executor == "ray" and todo:
+            for res in _run_on_ray(cfg, str(run_dir), cfg_dict, stage_ref, todo):
+                record(*res)
+        elif n_workers <= 1 and pool is None:
+            for it in todo:
+                record(*execute_item(str(run_dir), cfg_dict, stage_ref, it))
+        else:
+            if pool is not None and getattr(pool, "_broken", False):
+                # a warm process died (killed, or a crash in native code): the items get a fresh pool, and say
+                # themselves what goes wrong if it was not the warm step alone
+                log.warning("%s: a worker process died while warming up (%s); starting the workers again",
+                            stage.name, pool._broken)
+                _terminate_workers(pool)
+                pool = None
+            pool = pool or _process_pool(n_workers)
+            futs = [pool.submit(execute_item, str(run_dir), cfg_dict, stage_ref, it) for it in todo]
+            for fut in cf.as_completed(futs):
+                record(*fut.result())
+            pool.shutdown(wait=True)
+        report.problems = item_problems(run_dir, stage.name, set(keys))
+        if stage.finish is not None:  # also after failures: finish what can be finished
+            stage.finish(ctx, item_results(run_dir, stage.name))
+        report.seconds = time.perf_counter() - t0
+        return report
     except BaseException:
         # Interrupted (Ctrl-C, SIGTERM) or failed: stop the workers now instead of letting them
         # finish their items in the background. Finished items are kept; the ones cut short
@@ -301,77 +365,3 @@ def run_stage(run_dir: Path, cfg: Config, stage: Stage,
         if pool is not None:
             _terminate_workers(pool)
         raise
-
-
-def _run_planned(run_dir: Path, cfg: Config, stage: Stage, stage_ref: str, cfg_dict: dict, ctx: StageContext,
-                 report: StageReport, t0: float, pool: cf.ProcessPoolExecutor | None,
-                 on_progress: Callable[[int, int, float], None] | None) -> StageReport:
-    """:func:`run_stage` from the plan on; ``pool``: the stage's warm worker processes, if started."""
-    try:
-        items = stage.plan(ctx)
-    except Exception as e:  # noqa: BLE001 - a stage that cannot plan fails alone; the run reports it
-        user = isinstance(e, UserError)
-        msg = str(e) if user else f"{type(e).__name__}: {e} (bug; traceback in {PLAN_FAILED})"
-        atomic_write_json(run_dir / stage.name / ITEMS_DIR / PLAN_FAILED,
-                          {"error": msg, "user_error": user, "traceback": "" if user else traceback.format_exc()})
-        log.error("%s could not list its work: %s", stage.name, msg)
-        report.failed, report.failures = 1, {"(plan)": msg}
-        report.seconds = time.perf_counter() - t0
-        if pool is not None:
-            _terminate_workers(pool)
-        return report
-    (run_dir / stage.name / ITEMS_DIR / PLAN_FAILED).unlink(missing_ok=True)
-    keys = [it.key for it in items]
-    if len(set(keys)) != len(keys):
-        raise RuntimeError(f"stage {stage.name} planned duplicate item keys")
-    report.total = len(items)
-    todo = [it for it in items if not is_done(run_dir, stage.name, it.key)]
-    report.skipped = report.total - len(todo)
-    finished = report.skipped
-    if on_progress:
-        on_progress(finished, report.total, 0.0)
-
-    def record(key: str, err: str | None, sec: float) -> None:
-        nonlocal finished
-        finished += 1
-        if err is None:
-            report.done += 1
-            report.item_seconds.append(sec)
-        else:
-            report.failed += 1
-            report.failures[key] = err
-            log.error("%s %s failed: %s", stage.name, key, err)
-        if on_progress:
-            on_progress(finished, report.total, time.perf_counter() - t0)
-
-    n_workers = min(worker_count(cfg), max(1, len(todo)))
-    if pool is not None and not todo:
-        _terminate_workers(pool)   # warm, but nothing left to do
-    elif cfg.run.executor == "ray" and todo:
-        for res in _run_on_ray(cfg, str(run_dir), cfg_dict, stage_ref, todo):
-            record(*res)
-    elif n_workers <= 1 and pool is None:
-        for it in todo:
-            record(*execute_item(str(run_dir), cfg_dict, stage_ref, it))
-    else:
-        if pool is not None and getattr(pool, "_broken", False):
-            # a warm process died (killed, or a crash in native code): the items get a fresh pool, and say
-            # themselves what goes wrong if it was not the warm step alone
-            log.warning("%s: a worker process died while warming up (%s); starting the workers again",
-                        stage.name, pool._broken)
-            _terminate_workers(pool)
-            pool = None
-        pool = pool or _process_pool(n_workers)
-        try:
-            futs = [pool.submit(execute_item, str(run_dir), cfg_dict, stage_ref, it) for it in todo]
-            for fut in cf.as_completed(futs):
-                record(*fut.result())
-        except BaseException:
-            _terminate_workers(pool)   # see run_stage
-            raise
-        pool.shutdown(wait=True)
-    report.problems = item_problems(run_dir, stage.name, set(keys))
-    if stage.finish is not None:  # also after failures: finish what can be finished
-        stage.finish(ctx, item_results(run_dir, stage.name))
-    report.seconds = time.perf_counter() - t0
-    return report
