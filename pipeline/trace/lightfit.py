@@ -489,6 +489,19 @@ def _level_search(evaluate, pool, tolerance: float | None = None) -> np.ndarray:
     return y
 
 
+def _level_search_with_power(evaluate, pool) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_level_search` of ``evaluate(level) -> (objective (3,), emitted power (3,))``: the objective and
+    the power per channel at each level, (len(ALBEDO_LEVELS), 3) each (inf / NaN where not evaluated), for
+    :func:`_white_levels`."""
+    power = np.full((len(ALBEDO_LEVELS), 3), np.nan)
+
+    def objective(lv: float) -> np.ndarray:
+        obj, power[ALBEDO_LEVELS.index(lv)] = evaluate(lv)
+        return obj
+
+    return _level_search(objective, pool), power
+
+
 def _finite(values, digits: int = 4) -> list:
     """A list of ``values`` rounded to ``digits``, None where not finite (a level the search did not need)."""
     return [round(float(v), digits) if np.isfinite(v) else None for v in np.asarray(values, np.float64).ravel()]
@@ -1265,15 +1278,13 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         summary["stage2_level"] = [float(x) for x in level]
 
         area_j = np.concatenate([area_k[regions], _quad_area(quads[keep])])
-        power3 = np.full((len(ALBEDO_LEVELS), 3), np.nan)     # emitted power per channel at each level tried
 
-        def objective3(lv: float) -> np.ndarray:
+        def objective3(lv: float) -> tuple[np.ndarray, np.ndarray]:
             _, Ekc, cols = problem(np.full(3, lv), keep, Akeep)
             ej3, _, _, obj = alternate(np.full(3, lv), Ekc, cols, lbj[js], lamj[js], 0.0, 2)
-            power3[ALBEDO_LEVELS.index(lv)] = area_j @ ej3
-            return obj
+            return obj, area_j @ ej3
 
-        res3 = _level_search(objective3, pool)
+        res3, power3 = _level_search_with_power(objective3, pool)
         summary["stage3_level_data"] = [round(float(x), 4) for x in _curve_minimum(np.asarray(ALBEDO_LEVELS), res3)]
         level = _white_levels(res3, power3, st.white_prior)
         Mc, Ekc, cols = problem(level, keep, Akeep)
@@ -1324,14 +1335,11 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             keep = order[:max(1, int(np.searchsorted(cum, st.support_share)) + 1)][:st.max_emitters]
             sup = np.union1d(np.intersect1d(keep, active), np.intersect1d(np.arange(box_unknown.size, K), active))
             if sup.size:
-                power2 = np.full((len(ALBEDO_LEVELS), 3), np.nan)   # emitted power per channel at each level
-
-                def objective2(lv: float) -> np.ndarray:
+                def objective2(lv: float) -> tuple[np.ndarray, np.ndarray]:
                     (e2, _, _), _, obj = fit_at(np.full(3, lv), iters=2, active=sup, sparsity=0.0)
-                    power2[ALBEDO_LEVELS.index(lv)] = area_k @ e2
-                    return obj
+                    return obj, area_k @ e2
 
-                res2 = _level_search(objective2, pool)
+                res2, power2 = _level_search_with_power(objective2, pool)
                 best_level = np.asarray(ALBEDO_LEVELS)[np.argmin(res2, axis=0)]
                 if st.refine <= 0 and st.white_prior > 0:   # stage 2 is the last: the light's colour prior
                     best_level = _white_levels(res2, power2, st.white_prior)
