@@ -279,14 +279,15 @@ def _unseen_side(prim: np.ndarray, d: np.ndarray, tn: np.ndarray, nt: int, seen_
     return out
 
 
-def _sheet_backs(P: np.ndarray, patch: np.ndarray, npatch: int, owner: np.ndarray, hit_pos: np.ndarray, reach: float,
-                 weight: float):
-    """(len(P), npatch + 1) sparse: the irradiance each point ``P`` receives from the unseen sides of sheets,
-    per unit albedo of each patch (the last column: per unit of the room's level) and unit radiance of what
-    those sides face. ``owner (R,)`` / ``hit_pos (R, 3)``: the gather rays that met an unseen side (the
-    point they left, where they met it), each worth ``weight`` (pi / rays per point). A hit takes the patch of
-    the nearest point within ``reach`` metres (the sheet's photographed side: a scan's table top is one
-    sheet), the level where there is none.
+def _sheet_backs(P: np.ndarray, N: np.ndarray, patch: np.ndarray, npatch: int, owner: np.ndarray,
+                 hit_pos: np.ndarray, seen_normal: np.ndarray, reach: float, weight: float, near: int = 8):
+    """(len(P), npatch + 1) sparse: the irradiance each point ``P`` (normals ``N``) receives from the unseen
+    sides of sheets, per unit albedo of each patch (the last column: per unit of the room's level) and unit
+    radiance of what those sides face. ``owner (R,)`` / ``hit_pos (R, 3)`` / ``seen_normal (R, 3)``: the
+    gather rays that met an unseen side (the point they left, where they met it, the normal of the side the
+    cameras saw there), each worth ``weight`` (pi / rays per point). A hit takes the patch of the nearest of
+    its ``near`` nearest points within ``reach`` metres that faces the way the seen side does (the sheet's
+    photographed top, not the wall beside it: a scan's table top is one sheet), the level where none does.
 
     Why: the underside of a table top is lit by the floor below and reflects it with the table's albedo. The
     top's colour there doubled the floor's irradiance under the suite's table; nothing there (as before) left
@@ -300,8 +301,12 @@ def _sheet_backs(P: np.ndarray, patch: np.ndarray, npatch: int, owner: np.ndarra
         return scipy.sparse.csr_matrix((n, npatch + 1))
     from scipy.spatial import cKDTree
 
-    dist, near = cKDTree(P).query(hit_pos, k=1, distance_upper_bound=reach)
-    col = np.where(np.isfinite(dist), patch[np.minimum(near, n - 1)], npatch)
+    k = min(near, n)
+    dist, idx = cKDTree(P).query(hit_pos, k=k, distance_upper_bound=reach)
+    dist, idx = dist.reshape(len(hit_pos), k), np.minimum(idx.reshape(len(hit_pos), k), n - 1)
+    ok = np.isfinite(dist) & (np.einsum("rkj,rj->rk", N[idx], seen_normal) > 0.5)   # nearest first
+    first = ok.argmax(axis=1)
+    col = np.where(ok.any(axis=1), patch[idx[np.arange(len(idx)), first]], npatch)
     return scipy.sparse.csr_matrix((np.full(owner.size, float(weight)), (owner, col)), shape=(n, npatch + 1))
 
 
@@ -1065,8 +1070,11 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     # fit a darker albedo. What it sends instead depends on the albedo (see _sheet_backs below)
     back = hit[_unseen_side(hh.prim[hit], dg[hit], tn, nt, seen_side)]
     Lg[back] = 0.0
-    back_owner = pr[back]
-    back_pos = P[back_owner] + hh.t[back, None].astype(np.float64) * dg[back].astype(np.float64)
+    # (a clipped region's back is not a sheet: the region is an unknown, sampled two-sided below)
+    sheet = back[unknown_tri[hh.prim[back]] < 0]
+    back_owner = pr[sheet]
+    back_pos = P[back_owner] + hh.t[sheet, None].astype(np.float64) * dg[sheet].astype(np.float64)
+    back_normal = tn[hh.prim[sheet]] * float(seen_side)    # the side the cameras saw (seen_side is +-1 here)
     summary["gather_unseen_side"] = round(float(back.size / max(hit.size, 1)), 4)
     Lg[hit[(unknown_tri[hh.prim[hit]] >= 0) | (hh.prim[hit] >= nbt)]] = 0.0   # sampled explicitly below
     Ek = np.pi * Lg.reshape(n, M, 3).mean(axis=1)
@@ -1163,7 +1171,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     # there (as before) left the floor under the suite's table short of known light: the fit raised the
     # albedo level to explain it, and its lights emitted 0.80-1.00 of the truth's power in the suite's spot
     # and dim rooms (run seeds 0-4; 0.87-1.03 with it)
-    backs = _sheet_backs(P, patch, npatch, back_owner, back_pos, st.albedo_cell, np.pi / M)
+    backs = _sheet_backs(P, N, patch, npatch, back_owner, back_pos, back_normal, st.albedo_cell, np.pi / M)
     kappa = st.albedo_shrink * n / npatch
     w = _relative_weights(P, N, L @ LUMINANCE_F64)
     area_k = np.array([float(tarea[t].sum()) for t in el_tris])

@@ -605,7 +605,7 @@ def test_the_side_of_a_sheet_no_camera_saw_is_found():
 
 def _parallel_rectangle_factor(a: float, b: float, h: float) -> float:
     """Form factor from a small upward-facing patch to a parallel a x b rectangle h above, the patch under one
-    of its corners (Howell's catalogue of configuration factors, C-11)."""
+    of its corners (Howell's catalogue of configuration factors, B-3)."""
     X, Y = a / h, b / h
     sx, sy = np.sqrt(1 + X * X), np.sqrt(1 + Y * Y)
     return float((X / sx * np.arctan(Y / sx) + Y / sy * np.arctan(X / sy)) / (2 * np.pi))
@@ -615,9 +615,9 @@ def test_the_unseen_side_of_a_sheet_sends_its_own_albedo_of_the_light_below():
     """Points on the floor right under a paper-thin table top (1.2 x 0.8 m, 0.8 m up) get, per unit albedo
     and unit radiance below, the irradiance pi F of the sheet over them (F: the analytic form factor to a
     parallel rectangle), from the gather's rays that meet its unseen side; those rays take the albedo of
-    the sheet's own photographed top (the nearest fit point's patch), not the floor's, and the room's level
-    where no fit point is within reach. Zero here (as before) left the suite's floor under its table short of
-    light and the objects 8-20 % too dark."""
+    the sheet's own photographed top (the nearest fit point facing the way the top does: not a wall point
+    nearer still, not the floor), and the room's level where no such point is within reach. Zero here (as
+    before) left the suite's floor under its table short of light and its lamps too weak."""
     from pipeline.trace.intersect import EmbreeIntersector
     from pipeline.trace.lightfit import _gather, _sheet_backs, _unseen_side
 
@@ -625,27 +625,36 @@ def test_the_unseen_side_of_a_sheet_sends_its_own_albedo_of_the_light_below():
     isect = EmbreeIntersector(v.astype(np.float32), f.astype(np.int32))
     p_ = v[f]
     tn = np.cross(p_[:, 1] - p_[:, 0], p_[:, 2] - p_[:, 0])
+    tn /= np.linalg.norm(tn, axis=1, keepdims=True)
     rng = np.random.default_rng(3)
-    floor = np.column_stack([rng.uniform(-0.005, 0.005, 8), rng.uniform(-0.005, 0.005, 8), np.zeros(8)])
+    nf = 8
+    floor = np.column_stack([rng.uniform(-0.005, 0.005, nf), rng.uniform(-0.005, 0.005, nf), np.zeros(nf)])
     top = np.column_stack([rng.uniform(-0.55, 0.55, 50), rng.uniform(-0.35, 0.35, 50), np.full(50, 0.8)])
     P = np.concatenate([floor, top])
     N = np.tile([0.0, 0.0, 1.0], (len(P), 1))
-    patch = np.r_[np.zeros(len(floor), np.int64), np.ones(len(top), np.int64)]   # floor 0, table top 1
     M = 4096
     owner, hits, d = _gather(isect, P, N, M, rng, 1e-4)
     hit = np.flatnonzero(hits.hit)
     back = hit[_unseen_side(hits.prim[hit], d[hit], tn, len(f), 1)]
-    assert np.all(owner[back] < len(floor))                  # only the floor points see the sheet's back
+    assert np.all(owner[back] < nf)                           # only the floor points see the sheet's back
     pos = P[owner[back]] + hits.t[back, None] * d[back]
-    B = _sheet_backs(P, patch, 2, owner[back], pos, 0.5, np.pi / M).toarray()
+    seen_n = tn[hits.prim[back]]                             # the cameras see the fronts (+z): the top
+    # wall points (facing +x) right where some rays met the sheet: nearer than any top point, the wrong way
+    wall = pos[::1000] + [0.0, 0.0, 0.001]
+    Pw = np.concatenate([P, wall])
+    Nw = np.concatenate([N, np.tile([1.0, 0.0, 0.0], (len(wall), 1))])
+    patch = np.r_[np.zeros(nf, np.int64), np.ones(len(top), np.int64), np.full(len(wall), 2)]  # floor, top, wall
+    B = _sheet_backs(Pw, Nw, patch, 3, owner[back], pos, seen_n, 0.5, np.pi / M).toarray()
     want = np.pi * 4 * _parallel_rectangle_factor(0.6, 0.4, 0.8)       # F = 0.31 of the floor's sky
-    np.testing.assert_allclose(B[:len(floor)].sum(axis=1), want, rtol=0.04)
-    assert B[:, 0].sum() == 0 and B[:, 2].sum() == 0                    # the top's albedo, not the floor's
-    assert B[len(floor):].sum() == 0
-    far = _sheet_backs(P[:len(floor)], patch[:len(floor)], 2, owner[back], pos, 0.5, np.pi / M).toarray()
-    np.testing.assert_allclose(far[:, 2], B[:len(floor)].sum(axis=1))   # no top photographed: the level
-    empty = _sheet_backs(P, patch, 2, owner[:0], pos[:0], 0.5, 1.0)
-    assert empty.shape == (len(P), 3) and empty.nnz == 0
+    got = B[:nf].sum(axis=1)
+    np.testing.assert_allclose(got.mean(), want, rtol=0.03)              # 8 x 4096 rays: 0.8 % noise
+    np.testing.assert_allclose(got, want, rtol=0.1)
+    assert B[:nf, 1].sum() == got.sum()                                 # all on the top's albedo
+    assert B[nf:].sum() == 0
+    far = _sheet_backs(floor, N[:nf], patch[:nf], 3, owner[back], pos, seen_n, 0.5, np.pi / M).toarray()
+    np.testing.assert_allclose(far[:, 3], got)                          # no top photographed: the level
+    empty = _sheet_backs(P, N, patch, 3, owner[:0], pos[:0], seen_n[:0], 0.5, 1.0)
+    assert empty.shape == (len(P), 4) and empty.nnz == 0
 
 
 def test_relative_weights_do_not_follow_the_texture():
