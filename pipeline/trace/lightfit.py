@@ -299,14 +299,8 @@ def _sheet_backs(P: np.ndarray, N: np.ndarray, patch: np.ndarray, npatch: int, o
     n = len(P)
     if owner.size == 0 or n == 0:
         return scipy.sparse.csr_matrix((n, npatch + 1))
-    from scipy.spatial import cKDTree
-
-    k = min(near, n)
-    dist, idx = cKDTree(P).query(hit_pos, k=k, distance_upper_bound=reach)
-    dist, idx = dist.reshape(len(hit_pos), k), np.minimum(idx.reshape(len(hit_pos), k), n - 1)
-    ok = np.isfinite(dist) & (np.einsum("rkj,rj->rk", N[idx], seen_normal) > 0.5)   # nearest first
-    first = ok.argmax(axis=1)
-    col = np.where(ok.any(axis=1), patch[idx[np.arange(len(idx)), first]], npatch)
+    idx = _nearest_facing(P, N, hit_pos, seen_normal, reach, near)
+    col = np.where(idx >= 0, patch[idx], npatch)
     return scipy.sparse.csr_matrix((np.full(owner.size, float(weight)), (owner, col)), shape=(n, npatch + 1))
 
 
@@ -618,6 +612,27 @@ def _relative_weights(P: np.ndarray, N: np.ndarray, lum: np.ndarray, k: int = WE
     return 1.0 / (np.median(lum[nb.reshape(len(X), -1)], axis=1) + floor)
 
 
+def _nearest_facing(P: np.ndarray, N: np.ndarray, Q: np.ndarray, QN: np.ndarray, reach: float, k: int = 8,
+                    either_way: bool = False) -> np.ndarray:
+    """(len(Q),) index of the nearest of each query ``Q``'s ``k`` nearest points ``P`` within ``reach``
+    metres whose normal ``N`` is within 60 degrees of the query's ``QN`` (``either_way``: of it or its
+    opposite), -1 where none is."""
+    from scipy.spatial import cKDTree
+
+    out = np.full(len(Q), -1, np.int64)
+    if len(Q) == 0 or len(P) == 0:
+        return out
+    k = min(k, len(P))
+    dist, nb = cKDTree(P).query(Q, k=k, distance_upper_bound=reach)
+    dist, nb = dist.reshape(len(Q), k), np.minimum(nb.reshape(len(Q), k), len(P) - 1)
+    cos = np.einsum("qkj,qj->qk", N[nb], QN)
+    ok = np.isfinite(dist) & ((np.abs(cos) if either_way else cos) > 0.5)
+    first = np.argmax(ok, axis=1)                                  # the nearest that qualifies
+    has = ok[np.arange(len(Q)), first]
+    out[has] = nb[has, first[has]]
+    return out
+
+
 def _vertex_albedo(V: np.ndarray, F: np.ndarray, P: np.ndarray, N: np.ndarray, rho_p: np.ndarray,
                    level: np.ndarray, reach: float, k: int = 8) -> np.ndarray:
     """(V, 3) albedo of the mesh's vertices: that of the nearest fit point ``P`` (normals ``N``, albedo
@@ -625,23 +640,13 @@ def _vertex_albedo(V: np.ndarray, F: np.ndarray, P: np.ndarray, N: np.ndarray, r
     normal within 60 degrees, either way round: a mesh's winding need not face the cameras); ``level (3,)``
     where there is none (no photo saw it). Nearest, not by patch key: a vertex on a patch's boundary plane
     (a wall's own plane) falls in the next cell, which its surface's points do not."""
-    from scipy.spatial import cKDTree
-
     from pipeline.trace.scene import vertex_normals
 
     out = np.tile(np.asarray(level, np.float64), (len(V), 1))
     if len(V) == 0 or len(F) == 0 or len(P) == 0:
         return out
-    vn = vertex_normals(V, F).astype(np.float64)
-    k = min(k, len(P))
-    dist, nb = cKDTree(P).query(V, k=k, distance_upper_bound=reach)
-    dist, nb = dist.reshape(len(V), k), nb.reshape(len(V), k)
-    ok = np.isfinite(dist)
-    cos = np.abs(np.einsum("vkj,vj->vk", N[np.minimum(nb, len(P) - 1)], vn))
-    ok &= cos > 0.5
-    first = np.argmax(ok, axis=1)
-    has = ok[np.arange(len(V)), first]
-    out[has] = rho_p[nb[has, first[has]]]
+    near = _nearest_facing(P, N, V, vertex_normals(V, F).astype(np.float64), reach, k, either_way=True)
+    out[near >= 0] = rho_p[near[near >= 0]]
     return out
 
 
