@@ -1177,6 +1177,12 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     # albedo level to explain it, and its lights emitted 0.80-1.00 of the truth's power in the suite's spot
     # and dim rooms (run seeds 0-4; 0.87-1.03 with it)
     backs = _sheet_backs(P, N, patch, npatch, back_owner, back_pos, back_normal, st.albedo_cell, np.pi / M)
+
+    def sheet_light(br, albedo: np.ndarray) -> np.ndarray:
+        """(rows, 3) irradiance the sheets' unseen sides send the points of ``br`` (rows of ``backs``) at
+        albedo ``albedo (npatch + 1, 3)``: each patch's, then the room's level."""
+        return (br @ albedo) * low_rad[None, :]
+
     kappa = st.albedo_shrink * n / npatch
     w = _relative_weights(P, N, L @ LUMINANCE_F64)
     area_k = np.array([float(tarea[t].sum()) for t in el_tris])
@@ -1212,7 +1218,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         def known(rho: np.ndarray) -> np.ndarray:
             """``Ekc`` and the light the sheets' unseen sides send at patch albedo ``rho`` (the level where
             no patch is near)."""
-            return Ek0 + (br @ np.vstack([rho, level[None]])) * low_rad[None, :]
+            return Ek0 + sheet_light(br, np.vstack([rho, level[None]]))
 
         Ekc = known(rho)
         if scale is None and sparsity != 0:   # the prior's scale does not change with the albedo: once
@@ -1360,7 +1366,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         e = lb.copy()
         Lu = lb.copy()
         rho = np.full((npatch, 3), 0.5)
-        E = Ek + (backs @ np.full((npatch + 1, 3), 0.5)) * low_rad
+        E = Ek + sheet_light(backs, np.full((npatch + 1, 3), 0.5))
         best_level, res_curve = None, []
         note = "no unseen or clipped light source visible from the photographed surfaces: lit by the scan itself"
     else:
