@@ -286,6 +286,10 @@ class TraceConfig:
                                     "is nearly flat there and the light's colour follows the level steeply: deep "
                                     "red walls otherwise come out lit red); 0 = each channel's own minimum",
                                     min=0.0)
+    fit_ceiling_albedo: float = option(0.8, "fit lighting: albedo of the ceiling where no photo saw it, grey (white "
+                                       "paint; EN 12464-1 recommends 0.7-0.9); it sets how much of the room's light "
+                                       "comes back down from above; 0 = the albedo of the upper walls the photos saw",
+                                       min=0.0, max=0.95)
     lights_file: str = option("", "fit lighting: JSON file of emitters you know, [{\"corners\": 4 x [x, y, z] world "
                               "metres, \"radiance\": [r, g, b] linear, 1 = sensor white}]; each emits on the side "
                               "its corners turn counter-clockwise around (normal (c1 - c0) x (c2 - c0)); they light the "

@@ -10,7 +10,8 @@ Yu et al., "Inverse Global Illumination" (SIGGRAPH 1999), reduced to what a CPU 
 1. **Closure.** The room mesh is closed by a box (the mesh's and the cameras' extent about ``up``, plus a
    margin) cut into cells of about ``cell`` metres: every ray that leaves the mesh through a hole, or past
    the top of the scanned walls, meets a cell, so unseen light gets a place in the room, not only a
-   direction.
+   direction. A cell the mesh hides from every camera (behind a wall) is not part of the room: it stays
+   dark (:func:`_behind_the_mesh`).
 2. **Observations.** Each used photo casts a strided pixel grid against mesh + box. Photos are linear
    (sRGB decoded) and divided by their exposure relative to the mesh colours (median ratio, as the
    trace stage measures it per frame). Rays through holes give the radiance of the box cell they meet;
@@ -42,10 +43,14 @@ Yu et al., "Inverse Global Illumination" (SIGGRAPH 1999), reduced to what a CPU 
    its own light with its albedo: without the pull the suite's dark table top came out 1.3-1.5x too
    bright (the light reaching it too weak, the objects standing on it too dark); with a pull of 2-4 its
    bright walls came out 0.8x too dark. The patches by material pin the contrast instead.
-   The unseen cells (the ceiling, the walls above the scan) reflect with the albedo of the upper walls the
-   photos saw (:func:`_wall_ratio`, under stage 1's light), not with the level, which the floor and the
-   furniture pull down and warm: with the true lights handed in, the suite's window room's objects came
-   out 0.93/0.88/0.86 of the truth's brightness with the level, 0.95/0.93/0.91 with the walls'.
+   The unseen walls above the scan reflect with the albedo of the upper walls the photos saw
+   (:func:`_wall_ratio`, under stage 1's light), not with the level, which the floor and the furniture pull
+   down and warm: with the true lights handed in, the suite's window room's objects came out 0.93/0.88/0.86
+   of the truth's brightness with the level, 0.95/0.93/0.91 with the walls'. The unseen ceiling reflects as
+   white paint (``ceiling_albedo``, :data:`CEILING_ALBEDO`): what comes back down from it is the known light
+   that most sets the level (the fit's power over the truth's moved 0.82-1.09x in the suite's dim room with
+   the albedo assumed for the unseen cells), and with the walls' albedo there the window room, whose light
+   reaches the table mostly off the ceiling, came out at 1.5-1.9x the truth's power in four seeds of five.
    Stage 3 (``refine``): each emitting cell is cut into lamps of ``refine`` metres, at the box and, under a
    ceiling cell, hanging up to ``REFINE_DEPTHS[-1]`` below it in free space no photo saw; the sparsity
    prior picks among them, the level is searched again with the lamps pinned (a parabola through the
@@ -65,9 +70,9 @@ Yu et al., "Inverse Global Illumination" (SIGGRAPH 1999), reduced to what a CPU 
    colours, fitted radiance on emitters and unseen cells) and the triangles to sample as lights
    (emitters with a visible share of the power; the lamps join the mesh as small one-sided rectangles),
    and the albedo the fit found per vertex (a mesh vertex takes its nearest fit point's, on a surface
-   facing the same way; the rest the level; the box the upper walls'). The trace stage lights and
-   shadows the objects with it, and takes the objects' shadows out of the room's light they see with the
-   albedo.
+   facing the same way; the rest the level; the box's sides the upper walls', its top the ceiling's). The
+   trace stage lights and shadows the objects with it, and takes the objects' shadows out of the room's
+   light they see with the albedo.
 
 White balance comes from the same fit: each channel has its own albedo level, and the emitters found share
 one colour, fitted over the three channels together (``shared_colour``, :func:`_shared_colour`), so they get
@@ -125,6 +130,10 @@ WEIGHT_NEIGHBOURS = 16        # points whose median photo luminance sets a point
 NORMAL_METRES = 2.0           # ... in a space where a unit normal counts as this many metres
 SIDE_SHARE = 0.9              # share of the camera rays meeting one side of the mesh that makes the other side unseen
 LIGHT_SHARE = 0.002           # emitters with at least this share of the fitted power are sampled as lights
+# albedo of a ceiling no photo saw: white paint (EN 12464-1 recommends 0.7-0.9 for a ceiling; it is the surface
+# a room most often leaves white)
+CEILING_ALBEDO = 0.8
+CEILING_COS = 0.7             # a closing box cell whose normal is this close to down is the ceiling
 
 
 @dataclass(frozen=True)
@@ -149,6 +158,7 @@ class FitSettings:
     radiance_scale: float = 1.0  # the trace stage's: radiance = this x linear colour
     shared_colour: bool = True  # every emitter found is one colour (fitted); False: each channel on its own
     white_prior: float = 0.1    # last stage: pull of the emitters' colour toward the photos' white (0 = off)
+    ceiling_albedo: float = CEILING_ALBEDO  # the unseen ceiling's albedo, white (0 = the upper walls', as the sides)
 
 
 @dataclass(frozen=True)
@@ -550,9 +560,9 @@ def _wall_ratio(L: np.ndarray, E: np.ndarray, w: np.ndarray, cos_up: np.ndarray,
     fit points whose normal is within WALL_COS of horizontal (``cos_up``: its cosine to up) at least
     LOW_FILL_M above the scan's lowest point (``height``); their albedo is the one that explains their
     photographed radiance ``L (n, 3)`` under the fitted irradiance ``E (n, 3)`` best (weights ``w``), as
-    one patch, not shrunk toward the level. The unseen cells (the walls above the scan, the ceiling)
-    reflect with it: the level also counts the floor and the furniture, darker and warmer than walls and
-    ceilings. 1 with fewer than MIN_FIT_POINTS such points."""
+    one patch, not shrunk toward the level. The unseen walls above the scan (and the ceiling, where
+    ``ceiling_albedo`` is 0) reflect with it: the level also counts the floor and the furniture, darker and
+    warmer than walls. 1 with fewer than MIN_FIT_POINTS such points."""
     wall = (np.abs(cos_up) < WALL_COS) & (height >= LOW_FILL_M)
     if int(wall.sum()) < MIN_FIT_POINTS:
         return np.ones(3)
@@ -610,6 +620,28 @@ def _relative_weights(P: np.ndarray, N: np.ndarray, lum: np.ndarray, k: int = WE
     X = np.concatenate([P, NORMAL_METRES * N], axis=1)
     _, nb = cKDTree(X).query(X, k=k)
     return 1.0 / (np.median(lum[nb.reshape(len(X), -1)], axis=1) + floor)
+
+
+def _behind_the_mesh(isect, cells: np.ndarray, cams: list, eps: float, grid: int = 3) -> np.ndarray:
+    """(C,) bool: the closing box's cells ``cells (C, 4, 3)`` (corners in order) the room's mesh hides from
+    every camera centre ``cams``: from each of ``grid`` x ``grid`` points spread over the cell, the segment
+    to every camera meets the mesh (``isect`` holds it with the box, which the segments do not cross). A
+    cell seen in part, through a hole or past a wall's end, is not hidden. False for all without cameras."""
+    cells = np.asarray(cells, np.float64).reshape(-1, 4, 3)
+    t = (np.arange(grid) + 0.5) / grid
+    a, b = (x.ravel() for x in np.meshgrid(t, t))
+    o, u, v = cells[:, 0], cells[:, 1] - cells[:, 0], cells[:, 3] - cells[:, 0]
+    pts = (o[:, None] + a[None, :, None] * u[:, None] + b[None, :, None] * v[:, None]).reshape(-1, 3)
+    hidden = np.full(len(pts), bool(cams))
+    for c in cams:
+        if not hidden.any():
+            break
+        idx = np.flatnonzero(hidden)
+        d = np.asarray(c, np.float64)[None] - pts[idx]
+        dist = np.linalg.norm(d, axis=1)
+        d /= np.maximum(dist, 1e-12)[:, None]
+        hidden[idx] = isect.occluded(pts[idx] + eps * d, d, np.maximum(dist - 2 * eps, 0))
+    return hidden.reshape(len(cells), -1).all(axis=1)
 
 
 def _nearest_facing(P: np.ndarray, N: np.ndarray, Q: np.ndarray, QN: np.ndarray, reach: float, k: int = 8,
@@ -900,6 +932,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     AF = np.concatenate([F, BF + nv, KF + nv + len(BV)]).astype(np.int32)
     nbt = nt + len(BF)                       # triangles before the known lights
     isect = EmbreeIntersector(AV, AF)
+    eps = 1e-3 * max(float(np.ptp(AV, axis=0).max()), 1e-3)
     p_ = AV[AF].astype(np.float64)
     tn = np.cross(p_[:, 1] - p_[:, 0], p_[:, 2] - p_[:, 0])
     tarea = 0.5 * np.linalg.norm(tn, axis=1)
@@ -1018,6 +1051,14 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     box_rad = np.zeros((nb, 3))
     box_rad[box_known] = box_sum[box_known] / box_n[box_known, None]
     box_unknown = np.flatnonzero((~box_known | (box_clip > box_n)) & ~floor_cell)
+    # a cell the mesh hides from every camera is behind the scan's surfaces (a wall's far side): nothing there
+    # lights the room but through the gap between the mesh and the box, and a lamp behind a wall lighting the
+    # room through the white ceiling (CEILING_ALBEDO) explained photos of walls brighter near the top better
+    # than the ceiling's own cells did. Such cells stay dark, and do not reflect
+    behind = (_behind_the_mesh(isect, BV.reshape(-1, 4, 3)[box_unknown], cams, eps)
+              & ((box_n + box_clip)[box_unknown] == 0))      # and no photo's ray met it
+    box_unknown = box_unknown[~behind]
+    summary["cells_behind_the_mesh"] = int(behind.sum())
     # low cells no photo saw: the mean radiance of the mesh's surfaces below the same height
     fill = ~box_known & floor_cell
     low = V[F].mean(axis=1) @ upv < h_low + LOW_FILL_M
@@ -1048,7 +1089,6 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     sel = np.sort(rng.choice(len(P), size=min(len(P), st.points), replace=False))
     P, N, L = P[sel], N[sel], L[sel]
     n = len(P)
-    eps = 1e-3 * max(float(np.ptp(AV, axis=0).max()), 1e-3)
 
     # per-element radiance used by the gather: mesh colours (emitters: 0, they are unknowns), known cells
     unknown_tri = np.zeros(len(AF), np.int64) - 1       # triangle -> unknown index
@@ -1141,6 +1181,12 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                                       16, rng, eps, pool) @ k_rad
     reflect = np.zeros(K)
     reflect[:nbu] = 1.0                      # clipped mesh regions are lamps: they do not reflect here
+    # the ceiling's cells reflect as white paint, whatever the walls' albedo (see CEILING_ALBEDO)
+    ceiling = np.zeros(K)
+    if st.ceiling_albedo > 0:
+        ceiling[:nbu] = bnrm[box_unknown] @ upv < -CEILING_COS
+        reflect -= ceiling
+    summary["ceiling_cells"] = int(ceiling.sum())
 
     # the unseen cells' albedo relative to the room's level, per channel: 1 until stage 1 has found the
     # walls' (see _wall_ratio)
@@ -1151,9 +1197,9 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         return np.clip(np.asarray(level, np.float64) * unseen_ratio, *ALBEDO_RANGE)
 
     def rho_u(albedo_c: float) -> np.ndarray:
-        """(K,) albedo over pi of the unknowns when the unseen cells' albedo is ``albedo_c`` (clipped regions
-        do not reflect)."""
-        return albedo_c * reflect / np.pi
+        """(K,) albedo over pi of the unknowns when the unseen side cells' albedo is ``albedo_c`` (the ceiling's
+        is ``ceiling_albedo``; clipped regions do not reflect)."""
+        return (albedo_c * reflect + st.ceiling_albedo * ceiling) / np.pi
 
     def transport(albedo_c: float) -> np.ndarray:
         """(I - rho_u / pi G)^-1 for an unseen cell albedo of ``albedo_c``."""
@@ -1478,6 +1524,8 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     albedo = np.zeros((len(AVo), 3))
     albedo[:nv] = _vertex_albedo(V, F, P, N, rho[patch], lvl, st.albedo_cell)
     albedo[nv:nv + len(BV)] = unseen(lvl)
+    if st.ceiling_albedo > 0:            # four vertices per box cell
+        albedo[nv:nv + len(BV)][np.repeat(bnrm @ upv < -CEILING_COS, 4)] = st.ceiling_albedo
     return RoomLights(vertices=AVo, faces=AFo, radiance=rad.astype(np.float32), light_tri=light_tri,
                       num_mesh_vertices=nv, num_mesh_tris=nt, summary=summary,
                       albedo=np.clip(albedo, 0.0, 1.0).astype(np.float32))

@@ -57,9 +57,8 @@ def test_closing_box_faces_inward_and_encloses():
     assert np.all(np.einsum("ij,ij->i", tn, np.repeat(nrm, 2, axis=0)) > 0)   # winding matches
 
 
-def test_unseen_ceiling_gets_the_light():
-    """Walls photographed brighter near the top than the bottom: the light must come from the unseen
-    ceiling (the box cells above), not from the floor."""
+def lit_from_above():
+    """The open room's mesh, colours and 6 photos of walls brighter near the top than the bottom."""
     v, f, colors = open_room()
     z = v[:, 2]
     lin = 0.05 + 0.3 * (z / 2.5)                      # walls brighter towards the ceiling
@@ -77,6 +76,13 @@ def test_unseen_ceiling_gets_the_light():
         zz = np.where(h.hit, (o + h.t[:, None] * d)[:, 2], 2.5)
         val = np.clip(np.round(255 * ((0.05 + 0.3 * zz / 2.5) ** (1 / 2.2))), 0, 255).astype(np.uint8)
         fr.append((np.repeat(val.reshape(H, W, 1), 3, axis=2), Kf, T))
+    return v, f, colors, fr
+
+
+def test_unseen_ceiling_gets_the_light():
+    """Walls photographed brighter near the top than the bottom: the light must come from the unseen
+    ceiling (the box cells above), not from the floor."""
+    v, f, colors, fr = lit_from_above()
     # the cells alone (refine = 0): the light is on the box's top
     rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(1),
                          settings=FitSettings(points=600, stride=2, cell=0.5, refine=0.0))
@@ -91,6 +97,70 @@ def test_unseen_ceiling_gets_the_light():
     check_finite(rl)
     em = rl.summary["emitters"]
     assert em and sum(e["power_share"] for e in em if e["centre"][2] > 1.6) > 0.9, em[:5]
+
+
+def test_the_unseen_ceiling_reflects_as_white_paint():
+    """The closing box's ceiling cells reflect with ``ceiling_albedo`` (white paint, brighter than the
+    room's walls here), its side cells with the upper walls' albedo; with 0 the ceiling takes the walls'
+    too. A brighter ceiling sends more of the light back down, so the same photos need less emitted light,
+    and the albedo handed to the trace stage says so on the box's top only."""
+    from pipeline.trace.lightfit import CEILING_ALBEDO
+
+    v, f, colors, fr = lit_from_above()
+
+    def fit(ceiling):
+        st = FitSettings(points=600, stride=2, cell=0.5, refine=0.0, ceiling_albedo=ceiling)   # no lamps
+        rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(1), settings=st)
+        check_finite(rl)
+        assert rl.summary["fitted"], rl.summary["note"]
+        box = rl.albedo[rl.num_mesh_vertices:]
+        top = np.repeat(rl.vertices[rl.num_mesh_vertices:].reshape(-1, 4, 3)[:, :, 2].min(axis=1) > 2.5, 4)
+        power = sum(e["area_m2"] * np.asarray(e["radiance"]) for e in rl.summary["emitters"])
+        return box, top, power, rl.summary
+
+    white, top, p_white, s_white = fit(CEILING_ALBEDO)
+    walls, top0, p_walls, s_walls = fit(0.0)
+    assert np.array_equal(top, top0) and top.sum() >= 16 and (~top).sum() > top.sum()
+    assert s_white["ceiling_cells"] > 0 and s_walls["ceiling_cells"] == 0
+    np.testing.assert_allclose(white[top], CEILING_ALBEDO, rtol=1e-6)
+    for box in (white, walls):   # the sides: the upper walls' albedo (about 0.68 here, the photos' walls)
+        side = np.unique(box[~top].round(5), axis=0)
+        assert len(side) == 1 and np.all(np.abs(side - CEILING_ALBEDO) > 0.05), side
+    np.testing.assert_allclose(walls[top], walls[~top][:len(walls[top])], rtol=1e-6)
+    assert np.all(p_white < 0.9 * p_walls), (p_white, p_walls)
+
+
+def test_cells_behind_the_mesh_are_those_it_hides_from_every_camera():
+    """A wall 2 m high at y = -2 with a 0.5 m hole: box cells just behind it are hidden from the cameras;
+    one above its top, one behind the hole, one whose centre is behind the wall but a third of it behind the
+    hole, and one that only one of two cameras has hidden are not; without cameras nothing is."""
+    from pipeline.trace.intersect import EmbreeIntersector
+    from pipeline.trace.lightfit import _behind_the_mesh
+
+    xs, zs = np.linspace(-2, 2, 9), np.linspace(0, 2, 5)          # 0.5 m squares
+    V = np.array([[x, -2.0, z] for z in zs for x in xs])
+    F = []
+    for i in range(len(zs) - 1):
+        for j in range(len(xs) - 1):
+            a, b, c, d = i * 9 + j, i * 9 + j + 1, (i + 1) * 9 + j + 1, (i + 1) * 9 + j
+            if (i, j) != (2, 4):                                     # the hole: x 0..0.5, z 1..1.5
+                F += [[a, b, c], [a, c, d]]
+    isect = EmbreeIntersector(V.astype(np.float32), np.asarray(F, np.int32))
+    centres = np.array([[-1.0, -2.02, 1.2],   # behind the wall
+                        [-1.0, -2.02, 2.3],   # above its top
+                        [0.25, -2.02, 1.25],  # behind the hole
+                        [0.6, -2.02, 1.25],   # its centre behind the wall; wide, its left third behind the hole
+                        [1.95, -2.02, 0.5]])  # behind the wall, but the second camera sees past its end (wide:
+    #                                           and its right third the first camera)
+
+    def cells(half: float) -> np.ndarray:   # squares of 2 x half in the wall's plane, corners in order
+        return centres[:, None] + half * np.array([[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, 1.0]])[None]
+
+    cams = [np.array([0.0, 0.0, 1.3]), np.array([3.0, -1.9, 0.5])]
+    np.testing.assert_array_equal(_behind_the_mesh(isect, cells(0.01), cams[:1], 1e-3), [1, 0, 0, 1, 1])
+    np.testing.assert_array_equal(_behind_the_mesh(isect, cells(0.3), cams[:1], 1e-3), [1, 0, 0, 0, 0])
+    np.testing.assert_array_equal(_behind_the_mesh(isect, cells(0.01), cams, 1e-3), [1, 0, 0, 1, 0])
+    assert not _behind_the_mesh(isect, cells(0.3), [], 1e-3).any()
 
 
 def test_threads_do_not_change_the_lights():
@@ -185,14 +255,19 @@ def test_fitted_albedo_reaches_the_mesh_vertices(tmp_path):
     # light on floor and walls differs): the floor's albedo at most 0.6 x the walls' where the photos saw them
     assert alb[inner_floor].mean() < 0.6 * alb[mid_wall].mean(), (alb[inner_floor], alb[mid_wall])
     assert np.all(rl.albedo >= 0.0) and np.all(rl.albedo[:len(v)] <= 0.95)
-    # the closing box (the unseen ceiling) reflects like the walls, not like the room's level, which the
-    # dark floor pulls down: its albedo is above the level by what the walls are
+    # the closing box's sides (the unseen upper walls) reflect like the walls, not like the room's level,
+    # which the dark floor pulls down: their albedo is above the level by what the walls are; its top (the
+    # unseen ceiling) as white paint
+    from pipeline.trace.lightfit import CEILING_ALBEDO
+
     level = np.asarray(rl.summary["albedo_level"])
     ratio = np.asarray(rl.summary["unseen_albedo_ratio"])
     box = rl.albedo[len(v):len(v) + rl.summary["box_cells"] * 4]
+    top = np.repeat(rl.vertices[len(v):len(v) + len(box)].reshape(-1, 4, 3)[:, :, 2].min(axis=1) > 2.5, 4)
     assert np.all(ratio > 1.2), ratio
     # (the summary keeps the ratio to 4 decimals)
-    assert np.allclose(box, np.clip(level * ratio, 0.02, 0.95), rtol=1e-4, atol=0), (box[:2], level, ratio)
+    assert np.allclose(box[~top], np.clip(level * ratio, 0.02, 0.95), rtol=1e-4, atol=0), (box[:2], level, ratio)
+    assert top.sum() >= 16 and np.all(box[top] == np.float32(CEILING_ALBEDO))
     rl.save(tmp_path / "lights.npz")
     z = dict(np.load(tmp_path / "lights.npz"))
     del z["albedo"]
