@@ -163,6 +163,39 @@ def test_cells_behind_the_mesh_are_those_it_hides_from_every_camera():
     assert not _behind_the_mesh(isect, cells(0.3), [], 1e-3).any()
 
 
+def test_the_box_closes_the_room_behind_the_cameras_not_at_them():
+    """A scan of the half of a room in front of the cameras (y > -1; nothing of the wall behind them): the
+    box's side behind the cameras stands BEHIND_CAMERA_M behind the rearmost one, level, whichever way the
+    cameras tilt; the sides the scan reached stay where the scan ends; a camera looking straight down adds
+    nothing behind it."""
+    from pipeline.camera import Camera
+    from pipeline.trace.lightfit import BEHIND_CAMERA_M, MARGIN, box_extent
+
+    v, f = box_room((-2, -2, 0), (2, 2, 2.5), n=8)
+    c = v[f].mean(axis=1)
+    f = f[(c[:, 1] > -1.0) & (c[:, 2] < 2.49)]
+    used, f = np.unique(f, return_inverse=True)
+    v, f = v[used], f.reshape(-1, 3)
+    cams = [Camera(K=K, T_c2w=look_at((x, y, 1.4), (0.3 * x, 1.5, z)), width=W, height=H)
+            for x, y, z in ((-1.0, -1.2, 0.2), (0.0, -1.4, 1.4), (1.0, -1.2, 2.4))]
+    assert v[:, 1].min() == pytest.approx(-1.0)
+    pts = box_extent(v, cams, [], UP)
+    assert pts[:, 1].min() == pytest.approx(-1.4 - BEHIND_CAMERA_M, abs=1e-9)
+    np.testing.assert_allclose(pts.max(axis=0)[:2], v.max(axis=0)[:2], atol=1e-9)
+    np.testing.assert_allclose(pts.min(axis=0)[[0, 2]], v.min(axis=0)[[0, 2]], atol=1e-9)
+    T_down = np.diag([1.0, -1.0, -1.0, 1.0])
+    T_down[:3, 3] = (0.0, -1.5, 1.4)
+    down = Camera(K=K, T_c2w=T_down, width=W, height=H)
+    assert box_extent(v, [down], [], UP)[:, 1].min() == pytest.approx(-1.5, abs=1e-9)
+    # the fit closes the room with that box
+    photo = np.full((H, W, 3), 120, np.uint8)
+    rl = fit_room_lights(v, f, np.full((len(v), 3), 150, np.uint8), [(photo, K, cam.T_c2w) for cam in cams],
+                         up=UP, rng=np.random.default_rng(0), settings=FitSettings(points=300, stride=4, cell=0.5))
+    check_finite(rl)
+    box = rl.vertices[rl.num_mesh_vertices:rl.num_mesh_vertices + 4 * rl.summary["box_cells"]]
+    assert box[:, 1].min() == pytest.approx(-1.4 - BEHIND_CAMERA_M - MARGIN, abs=1e-6)
+
+
 def test_threads_do_not_change_the_lights():
     """The trace stage's plan fits on several threads (shadow rays and the level searches side by side):
     the random draws stay in order, so the lights are the same bytes as on one thread (a run's bytes must
