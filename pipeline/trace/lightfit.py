@@ -151,7 +151,7 @@ class FitSettings:
     stride: int = 8             # photo pixels between grid rays
     threshold: int = 250        # 8-bit level at which a channel counts as clipped
     min_share: float = 0.5      # share of clipped observations that makes a mesh vertex an emitter
-    sparsity: float = 0.2       # L1 weight on emission (columns normalised; relative to the data term's scale)
+    sparsity: float = 0.4       # L1 weight on emission (columns normalised; relative to the data term's scale)
     level_tolerance: float = 0.05  # the highest albedo level whose objective is within this share of the best
     support_share: float = 0.99  # stage 2: the cells carrying this share of stage 1's power emit, the rest reflect
     max_emitters: int = 24      # stage 2: at most this many unknown cells emit (0 = no second stage)
