@@ -168,11 +168,13 @@ def test_cells_behind_the_mesh_are_those_it_hides_from_every_camera():
 
 def test_the_box_closes_the_room_behind_the_cameras_not_at_them():
     """A scan of the half of a room in front of the cameras (y > -1; nothing of the wall behind them): the
-    box's side behind the cameras stands BEHIND_CAMERA_M behind the rearmost one, level, whichever way the
+    box's side behind the cameras stands half a metre behind the rearmost one, level, whichever way the
     cameras tilt; the sides the scan reached stay where the scan ends; a camera looking straight down adds
     nothing behind it."""
     from pipeline.camera import Camera
-    from pipeline.trace.lightfit import BEHIND_CAMERA_M, MARGIN, box_extent
+    from pipeline.trace.lightfit import MARGIN, box_extent
+
+    behind = 0.5   # metres: the decision (box_extent's docstring), not read back from the module
 
     v, f = box_room((-2, -2, 0), (2, 2, 2.5), n=8)
     c = v[f].mean(axis=1)
@@ -183,7 +185,7 @@ def test_the_box_closes_the_room_behind_the_cameras_not_at_them():
             for x, y, z in ((-1.0, -1.2, 0.2), (0.0, -1.4, 1.4), (1.0, -1.2, 2.4))]
     assert v[:, 1].min() == pytest.approx(-1.0)
     pts = box_extent(v, cams, [], UP)
-    assert pts[:, 1].min() == pytest.approx(-1.4 - BEHIND_CAMERA_M, abs=1e-9)
+    assert pts[:, 1].min() == pytest.approx(-1.4 - behind, abs=1e-9)
     np.testing.assert_allclose(pts.max(axis=0)[:2], v.max(axis=0)[:2], atol=1e-9)
     np.testing.assert_allclose(pts.min(axis=0)[[0, 2]], v.min(axis=0)[[0, 2]], atol=1e-9)
     T_down = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -196,7 +198,7 @@ def test_the_box_closes_the_room_behind_the_cameras_not_at_them():
                          up=UP, rng=np.random.default_rng(0), settings=FitSettings(points=300, stride=4, cell=0.5))
     check_finite(rl)
     box = rl.vertices[rl.num_mesh_vertices:rl.num_mesh_vertices + 4 * rl.summary["box_cells"]]
-    assert box[:, 1].min() == pytest.approx(-1.4 - BEHIND_CAMERA_M - MARGIN, abs=1e-6)
+    assert box[:, 1].min() == pytest.approx(-1.4 - behind - MARGIN, abs=1e-6)
 
 
 def test_threads_do_not_change_the_lights():
