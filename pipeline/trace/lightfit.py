@@ -664,7 +664,7 @@ def _behind_the_mesh(isect, cells: np.ndarray, cams: list, eps: float, grid: int
         dist = np.linalg.norm(d, axis=1)
         d /= np.maximum(dist, 1e-12)[:, None]
         hidden[idx] = isect.occluded(pts[idx] + eps * d, d, np.maximum(dist - 2 * eps, 0))
-    return hidden.reshape(len(cells), -1).all(axis=1)
+    return hidden.reshape(len(cells), grid * grid).all(axis=1)
 
 
 def _nearest_facing(P: np.ndarray, N: np.ndarray, Q: np.ndarray, QN: np.ndarray, reach: float, k: int = 8,
@@ -946,6 +946,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     hb = bcen @ upv
     # the box's bottom (under the floor) and the low band of its sides (furniture height): never a light
     floor_cell = ((bnrm @ upv) > 0.5) | (hb < h_low + LOW_FILL_M)
+    ceiling_cell = (bnrm @ upv) < -CEILING_COS   # the box's top (white paint where st.ceiling_albedo > 0)
     KV = np.concatenate(kq) if kq else np.zeros((0, 3))
     KF = np.array([[4 * i, 4 * i + 1, 4 * i + 2] for i in range(len(kq))] +
                   [[4 * i, 4 * i + 2, 4 * i + 3] for i in range(len(kq))], np.int64).reshape(-1, 3)
@@ -1078,10 +1079,10 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     # lights the room but through the gap between the mesh and the box, and a lamp behind a wall lighting the
     # room through the white ceiling (CEILING_ALBEDO) explained photos of walls brighter near the top better
     # than the ceiling's own cells did. Such cells stay dark, and do not reflect
-    behind = (_behind_the_mesh(isect, BV.reshape(-1, 4, 3)[box_unknown], cams, eps)
-              & ((box_n + box_clip)[box_unknown] == 0))      # and no photo's ray met it
-    box_unknown = box_unknown[~behind]
-    summary["cells_behind_the_mesh"] = int(behind.sum())
+    unmet = box_unknown[(box_n + box_clip)[box_unknown] == 0]     # cells no photo's ray met
+    behind = unmet[_behind_the_mesh(isect, BV.reshape(-1, 4, 3)[unmet], cams, eps)]
+    box_unknown = np.setdiff1d(box_unknown, behind)
+    summary["cells_behind_the_mesh"] = int(behind.size)
     # low cells no photo saw: the mean radiance of the mesh's surfaces below the same height
     fill = ~box_known & floor_cell
     low = V[F].mean(axis=1) @ upv < h_low + LOW_FILL_M
@@ -1207,7 +1208,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     # the ceiling's cells reflect as white paint, whatever the walls' albedo (see CEILING_ALBEDO)
     ceiling = np.zeros(K)
     if st.ceiling_albedo > 0:
-        ceiling[:nbu] = bnrm[box_unknown] @ upv < -CEILING_COS
+        ceiling[:nbu] = ceiling_cell[box_unknown]
         reflect -= ceiling
     summary["ceiling_cells"] = int(ceiling.sum())
 
@@ -1548,7 +1549,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     albedo[:nv] = _vertex_albedo(V, F, P, N, rho[patch], lvl, st.albedo_cell)
     albedo[nv:nv + len(BV)] = unseen(lvl)
     if st.ceiling_albedo > 0:            # four vertices per box cell
-        albedo[nv:nv + len(BV)][np.repeat(bnrm @ upv < -CEILING_COS, 4)] = st.ceiling_albedo
+        albedo[nv:nv + len(BV)][np.repeat(ceiling_cell, 4)] = st.ceiling_albedo
     return RoomLights(vertices=AVo, faces=AFo, radiance=rad.astype(np.float32), light_tri=light_tri,
                       num_mesh_vertices=nv, num_mesh_tris=nt, summary=summary,
                       albedo=np.clip(albedo, 0.0, 1.0).astype(np.float32))

@@ -57,6 +57,14 @@ def test_closing_box_faces_inward_and_encloses():
     assert np.all(np.einsum("ij,ij->i", tn, np.repeat(nrm, 2, axis=0)) > 0)   # winding matches
 
 
+def box_top(rl: RoomLights, height: float = 2.5) -> np.ndarray:
+    """(4 x box cells,) bool per closing-box vertex: whether its cell is on the box's top (all four corners
+    above ``height``)."""
+    nv = rl.num_mesh_vertices
+    cells = rl.vertices[nv:nv + 4 * rl.summary["box_cells"]].reshape(-1, 4, 3)
+    return np.repeat(cells[:, :, 2].min(axis=1) > height, 4)
+
+
 def lit_from_above():
     """The open room's mesh, colours and 6 photos of walls brighter near the top than the bottom."""
     v, f, colors = open_room()
@@ -115,8 +123,8 @@ def test_the_unseen_ceiling_reflects_as_white_paint():
         rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(1), settings=st)
         check_finite(rl)
         assert rl.summary["fitted"], rl.summary["note"]
-        box = rl.albedo[rl.num_mesh_vertices:]
-        top = np.repeat(rl.vertices[rl.num_mesh_vertices:].reshape(-1, 4, 3)[:, :, 2].min(axis=1) > 2.5, 4)
+        box = rl.albedo[rl.num_mesh_vertices:rl.num_mesh_vertices + 4 * rl.summary["box_cells"]]
+        top = box_top(rl)
         power = sum(e["area_m2"] * np.asarray(e["radiance"]) for e in rl.summary["emitters"])
         return box, top, power, rl.summary
 
@@ -301,7 +309,7 @@ def test_fitted_albedo_reaches_the_mesh_vertices(tmp_path):
     level = np.asarray(rl.summary["albedo_level"])
     ratio = np.asarray(rl.summary["unseen_albedo_ratio"])
     box = rl.albedo[len(v):len(v) + rl.summary["box_cells"] * 4]
-    top = np.repeat(rl.vertices[len(v):len(v) + len(box)].reshape(-1, 4, 3)[:, :, 2].min(axis=1) > 2.5, 4)
+    top = box_top(rl)
     assert np.all(ratio > 1.2), ratio
     # (the summary keeps the ratio to 4 decimals)
     assert np.allclose(box[~top], np.clip(level * ratio, 0.02, 0.95), rtol=1e-4, atol=0), (box[:2], level, ratio)
