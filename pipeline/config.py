@@ -285,8 +285,14 @@ class TraceConfig:
     fit_white_prior: float = option(0.1, "fit lighting, last stage: pull of the fitted light's colour toward the "
                                     "photos' white, against each channel's own best albedo level (the objective "
                                     "is nearly flat there and the light's colour follows the level steeply: deep "
-                                    "red walls otherwise come out lit red); 0 = each channel's own minimum",
-                                    min=0.0)
+                                    "red walls otherwise come out lit red), where fit_white_patch is 0 or the fit "
+                                    "found no lamps; 0 = each channel's own minimum", min=0.0)
+    fit_white_patch: float = option(1.0, "fit lighting, last stage: pull of the albedo of the room's brightest "
+                                    "surfaces (the largest patches of the brightest tenth of the photographed "
+                                    "points) toward grey, against each channel's own best albedo level; it sets "
+                                    "the light's colour in place of fit_white_prior (a warm lamp then stays warm "
+                                    "over white walls, and deep red walls do not make the light red); 0 = "
+                                    "fit_white_prior's pull on the light instead", min=0.0)
     fit_ceiling_albedo: float = option(0.8, "fit lighting: albedo of the ceiling where no photo saw it, grey (white "
                                        "paint; EN 12464-1 recommends 0.7-0.9); it sets how much of the room's light "
                                        "comes back down from above; 0 = the albedo of the upper walls the photos saw",

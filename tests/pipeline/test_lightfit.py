@@ -917,3 +917,63 @@ def test_white_prior_sets_the_lights_colour_where_the_data_does_not(steep):
     if steep >= 50.0:         # the data decides
         np.testing.assert_allclose(lv, best, rtol=0.02)
     np.testing.assert_array_equal(_white_levels(got_res, power, 0.0), _curve_minimum(x, got_res))
+
+
+def test_the_brightest_surfaces_are_the_largest_brightest_patches():
+    """The room's brightest surfaces, which white_patch pulls toward grey: of the patches holding at least 1 %
+    of the points, the brightest first, until a tenth of the points; a brighter patch of a few points (a lamp's
+    edge, a sliver the light misses) is not one of them, nor the large dark floor. Without a patch that large,
+    nothing is said."""
+    from pipeline.trace.lightfit import _brightest_colour
+
+    rho = np.array([[0.6, 0.6, 0.6],      # 300 points: the brightest large patch
+                    [0.95, 0.95, 0.95],   # 5 points: brighter, too small
+                    [0.4, 0.5, 0.7],      # 300 points: the next brightest (luminance 0.49)
+                    [0.3, 0.3, 0.3]])     # 4395 points: the floor
+    patch = np.repeat([0, 1, 2, 3], [300, 5, 300, 4395])
+    np.random.default_rng(0).shuffle(patch)
+    # 300 points fall short of a tenth of 5000: the next patch joins, equally weighted
+    np.testing.assert_allclose(_brightest_colour(rho, patch), [0.5, 0.55, 0.65])
+    # a patch holding a tenth alone is all of it
+    patch2 = np.repeat([0, 1, 2, 3], [500, 5, 300, 4195])
+    np.testing.assert_allclose(_brightest_colour(rho, patch2), [0.6, 0.6, 0.6])
+    assert _brightest_colour(np.full((1000, 3), 0.5), np.arange(1000)) is None
+
+
+@pytest.mark.parametrize("steep", [0.002, 0.05, 50.0])
+def test_white_patch_makes_the_brightest_surfaces_grey_where_the_data_does_not(steep):
+    """The brightest surfaces' albedo goes with each channel's level (the photo is fixed): on analytic curves
+    (the level search leaving some out), the levels chosen minimise the objective plus the pull of those
+    surfaces toward grey as a brute-force search over the three channels' levels does. A flat objective makes
+    them grey (a warm room's light comes out warm, where the light's own prior made it white); a steep one
+    keeps each channel's minimum; without the pull each channel's own minimum (the parabola)."""
+    from pipeline.trace.lightfit import ALBEDO_LEVELS, _curve_minimum, _grey_levels, _level_search
+
+    x = np.asarray(ALBEDO_LEVELS)
+    best = np.array([0.38, 0.28, 0.17])      # each channel's own minimum
+    bright = np.array([0.62, 0.55, 0.40])    # the brightest surfaces' albedo there: warm
+    prior = 1.0
+
+    def res(v):
+        return 1.0 + steep * np.log(np.asarray(v) / best) ** 2
+
+    def log_t(l3):
+        return np.log(bright * np.asarray(l3) / best)
+
+    got_res = _level_search(lambda v: res(np.full(3, v)), None)
+    assert np.isinf(got_res).any()
+    lv = _grey_levels(got_res, bright, best, prior)
+
+    def total(l3):
+        lt = log_t(l3)
+        return np.sum(res(l3), axis=-1) + prior * np.sum((lt - lt.mean(axis=-1, keepdims=True)) ** 2, axis=-1)
+
+    g = np.exp(np.linspace(np.log(0.05), np.log(0.85), 70))
+    grid = np.stack(np.meshgrid(g, g, g, indexing="ij"), axis=-1)
+    assert total(lv) <= float(total(grid).min()) + 1e-4 * steep + 1e-6
+    if steep <= 0.002:        # the data barely prefers anything: the brightest surfaces come out grey
+        assert np.ptp(log_t(lv)) < 0.05
+        assert lv[2] / lv[0] > 1.25 * best[2] / best[0]   # blue's level up: the light warmer than the data's
+    if steep >= 50.0:         # the data decides
+        np.testing.assert_allclose(lv, best, rtol=0.02)
+    np.testing.assert_array_equal(_grey_levels(got_res, bright, best, 0.0), _curve_minimum(x, got_res))
