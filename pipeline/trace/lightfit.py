@@ -557,9 +557,9 @@ def _grey_levels(res: np.ndarray, bright: np.ndarray, level: np.ndarray, prior: 
     than its light is near the camera's white. Under a warm lamp with the light's prior the suite's ceiling room
     came out lit white, its albedo warm (blue 1.31 / 1.03 / 1.08x the truth's power at run seeds 0-2), and its
     coloured room lit red (green 0.83 / 0.76 / 0.70x); both come nearer grey walls and white cabinets this way."""
-    lv = np.asarray(ALBEDO_LEVELS, np.float64)[:, None]
-    scale = np.asarray(bright, np.float64) / np.maximum(np.asarray(level, np.float64), 1e-9)
-    return _white_levels(res, 1.0 / (lv * np.maximum(scale, 1e-9)[None, :]), prior)
+    # both positive: levels come off ALBEDO_LEVELS, albedos are clipped to ALBEDO_RANGE
+    scale = np.asarray(bright, np.float64) / np.asarray(level, np.float64)
+    return _white_levels(res, 1.0 / (np.asarray(ALBEDO_LEVELS, np.float64)[:, None] * scale), prior)
 
 
 def _within(y: np.ndarray, tolerance: float) -> np.ndarray:
