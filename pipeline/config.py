@@ -270,6 +270,11 @@ class TraceConfig:
     fit_refine: float = option(0.1, "fit lighting, third stage: each emitting cell is refined into lamps of this size, "
                                "metres, at the box or hanging up to 0.75 m below a ceiling cell where no photo saw "
                                "free space (a small spot over a table); 0 = keep the cells", min=0.0)
+    fit_polish: int = option(60, "fit lighting, third stage: objective evaluations placing and sizing each cluster "
+                             "of touching lamps hung below the ceiling (holding at least a tenth of the lamps' "
+                             "power) as one rectangle: its height between the stage's depths, 0.25 m apart, its "
+                             "place and its size; 0 = keep the squares of fit_refine metres where they were found",
+                             min=0)
     fit_albedo_shrink: float = option(0.0, "fit lighting: pull of each albedo patch toward the room's albedo level, "
                                       "in mean points per patch (0 = none: the patches sharing one albedo by colour, "
                                       "fit_albedo_group, keep a bright table top from becoming bright albedo instead "

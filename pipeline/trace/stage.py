@@ -215,7 +215,7 @@ def fit_settings(cfg: TraceConfig, width: int):
     return FitSettings(points=cfg.fit_points, cell=cfg.fit_cell, stride=max(1, round(width / GRID_W)),
                        sparsity=cfg.fit_sparsity,
                        level_tolerance=cfg.fit_level_tolerance, max_emitters=cfg.fit_emitters,
-                       refine=cfg.fit_refine, albedo_shrink=cfg.fit_albedo_shrink,
+                       refine=cfg.fit_refine, polish=cfg.fit_polish, albedo_shrink=cfg.fit_albedo_shrink,
                        albedo_group=cfg.fit_albedo_group,
                        threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale,
                        shared_colour=cfg.fit_light_colour == "shared", white_prior=cfg.fit_white_prior,

@@ -477,6 +477,32 @@ def test_small_hanging_lamp_is_found_where_it_hangs():
     assert centroid(cells)[0][2] > 2.4
 
 
+def test_the_polish_hangs_a_lamp_at_its_own_height():
+    """A 10 cm lamp 1.9 m high, between the third stage's depths (2.27, 2.02 and 1.77 m): the squares alone
+    hang it a depth step or more too high; the polish moves it to within 10 cm of its height and 8 cm of where
+    it hangs, as one lamp."""
+    v, f, _ = open_room()
+    lamp = np.array([0.3, -0.2, 1.9])
+    colors, fr = hanging_lamp_photos(v, f, lamp, 400.0)
+
+    def centroid(rl):
+        em = rl.summary["emitters"]
+        w = np.array([e["power_share"] for e in em])
+        return (w[:, None] * np.array([e["centre"] for e in em])).sum(axis=0) / w.sum(), em
+
+    for seed in (3, 4):
+        grid = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(seed),
+                               settings=FitSettings(points=800, stride=2, cell=0.4, polish=0))
+        assert centroid(grid)[0][2] > 2.0
+        rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(seed),
+                             settings=FitSettings(points=800, stride=2, cell=0.4))
+        check_finite(rl)
+        c, em = centroid(rl)
+        assert rl.summary["polished_lamps"] == 1
+        assert abs(c[2] - lamp[2]) < 0.1 and np.linalg.norm(c[:2] - lamp[:2]) < 0.08, (c, em[:3])
+        assert em[0]["power_share"] > 0.9, em[:3]
+
+
 def test_lamp_candidates_stay_out_of_sight_and_in_free_space():
     """A ceiling cell gives hanging candidates, a wall cell only its own squares; a candidate a photo
     would have seen, or one with a shelf between it and its cell, is dropped."""
@@ -977,3 +1003,73 @@ def test_white_patch_makes_the_brightest_surfaces_grey_where_the_data_does_not(s
     if steep >= 50.0:         # the data decides
         np.testing.assert_allclose(lv, best, rtol=0.02)
     np.testing.assert_array_equal(_grey_levels(got_res, bright, best, 0.0), _curve_minimum(x, got_res))
+
+
+def _square(cx: float, cy: float, z: float, size: float = 0.1) -> np.ndarray:
+    """A square lamp facing down, corners in the order _lamp_candidates cuts them (corner, + u, + u + v, + v)."""
+    o = np.array([cx - size / 2, cy - size / 2, z])
+    u, v = np.array([0.0, size, 0.0]), np.array([size, 0.0, 0.0])     # u x v = -z
+    return np.stack([o, o + u, o + u + v, o + v])
+
+
+def test_touching_lamps_are_one_cluster():
+    """Squares side by side or corner to corner are one lamp, as are squares hung one above another; a square
+    0.4 m away is another, and so is one facing another way."""
+    from pipeline.trace.lightfit import _lamp_clusters
+
+    q = np.array([_square(0.0, 0.0, 2.0), _square(0.1, 0.0, 2.0), _square(0.1, 0.1, 2.0),   # an L of three
+                  _square(0.2, 0.2, 2.0),                                                  # corner to corner
+                  _square(0.0, 0.0, 1.75),                                                 # under the first
+                  _square(0.6, 0.0, 2.0),                                                  # 0.4 m away
+                  _square(0.0, 0.1, 2.0)])
+    n = np.tile([0.0, 0.0, -1.0], (len(q), 1))
+    n[6] = [1.0, 0.0, 0.0]                                                                 # facing a wall
+    groups = _lamp_clusters(q, n, 0.1)
+    assert [g.tolist() for g in groups] == [[0, 1, 2, 3, 4], [5], [6]]
+
+
+def test_a_cluster_starts_where_its_light_is():
+    """The polish starts a cluster of squares at their power-weighted middle seen from below, in the plane of the
+    square asked for; a square of 10 cm about that point turns the same way round the normal as the squares."""
+    from pipeline.trace.lightfit import _cluster_start, _rectangle
+
+    q = np.array([_square(0.05, 0.05, 2.0), _square(0.15, 0.05, 2.0), _square(0.15, 0.15, 1.75)])
+    c, u, v = _cluster_start(q, np.array([1.0, 3.0, 0.0]), at=2)
+    np.testing.assert_allclose(c, [0.125, 0.05, 1.75], atol=1e-12)
+    c0, _, _ = _cluster_start(q, np.zeros(3), at=0)                      # no power: the plain middle
+    np.testing.assert_allclose(c0, [0.35 / 3, 0.25 / 3, 2.0], atol=1e-12)
+    r = _rectangle(c, u, v, 0.05, 0.05)
+    np.testing.assert_allclose(r.min(axis=0), [0.075, 0.0, 1.75], atol=1e-12)
+    np.testing.assert_allclose(r.max(axis=0), [0.175, 0.1, 1.75], atol=1e-12)
+    turn = np.cross(r[1] - r[0], r[3] - r[0])
+    assert turn @ np.cross(q[0, 1] - q[0, 0], q[0, 3] - q[0, 0]) > 0
+
+
+def test_coordinate_search_walks_to_the_minimum_and_keeps_to_bounds():
+    """A bowl's minimum inside the bounds is found to the last step's size; one outside them stops at the
+    bound; a forbidden region is never evaluated; the budget is kept; a flat function stops at once."""
+    from pipeline.trace.lightfit import _coordinate_search
+
+    seen = []
+
+    def bowl(target):
+        def f(x):
+            seen.append(np.array(x))
+            return float(np.sum((x - target) ** 2))
+        return f
+
+    lo, hi = np.array([-1.0, -1.0]), np.array([1.0, 1.0])
+    steps = np.array([0.2, 0.2])
+    x, fx, n = _coordinate_search(bowl(np.array([0.33, -0.52])), np.zeros(2), steps, lo, hi, lambda x: True, 200)
+    np.testing.assert_allclose(x, [0.33, -0.52], atol=0.2 / 2 ** 3 / 2 + 1e-9)
+    assert n <= 200
+    x, _, _ = _coordinate_search(bowl(np.array([3.0, 0.0])), np.zeros(2), steps, lo, hi, lambda x: True, 200)
+    assert x[0] == 1.0
+    seen.clear()
+    x, _, _ = _coordinate_search(bowl(np.array([0.6, 0.0])), np.zeros(2), steps, lo, hi, lambda x: x[0] <= 0.41, 200)
+    assert all(s[0] <= 0.41 for s in seen) and x[0] == pytest.approx(0.4)
+    seen.clear()
+    _, _, n = _coordinate_search(bowl(np.array([0.9, 0.9])), np.zeros(2), steps / 100, lo, hi, lambda x: True, 7)
+    assert n == 7 == len(seen)
+    _, _, n = _coordinate_search(lambda x: 1.0, np.zeros(2), steps, lo, hi, lambda x: True, 200)
+    assert n == 5                                  # x0, then each step of one sweep: nothing changed
