@@ -1545,6 +1545,11 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             cols = [np.concatenate([Ae[c][:, :nr], Acand + Ae[c][:, nr:]], axis=1) for c in range(3)]
             return Mc, Ekc, cols
 
+        def lamp_bounds(J: int) -> tuple[np.ndarray, np.ndarray]:
+            """Lower bounds and prior weights of the regions and ``J`` lamps, for the fits without the prior
+            (the lamps' lower bound 0)."""
+            return np.concatenate([lb[regions], np.zeros((J, 3))]), np.zeros(nr + J)
+
         def polish(lv: np.ndarray, lq: np.ndarray, ln: np.ndarray, par: np.ndarray, power: np.ndarray,
                    Gk: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
             """Each cluster of touching lamps (``lq (J, 4, 3)``, normals ``ln``, box cells ``par``) with a lamp
@@ -1556,10 +1561,10 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             the lamps, their light at the unseen cells ``Gk (K, J')`` and the number of rectangles made."""
             groups = _lamp_clusters(lq, ln, st.refine)
             share = np.array([power[g].sum() for g in groups]) / max(float(power.sum()), 1e-30)
+            depth_l = np.einsum("ij,ij->i", lq.mean(axis=1) - BV[4 * par], bnrm[par])   # below each lamp's cell
             # only clusters with a lamp hung below its cell: the grid's depths, 0.25 m apart, are what it refines
-            hangs = [bool(np.any(np.einsum("ij,ij->i", lq[g].mean(axis=1) - BV[4 * par[g]], bnrm[par[g]]) > 1e-6))
-                     for g in groups]
-            todo = [int(i) for i in np.argsort(-share, kind="stable") if share[i] >= POLISH_SHARE and hangs[i]]
+            todo = [int(i) for i in np.argsort(-share, kind="stable")
+                    if share[i] >= POLISH_SHARE and (depth_l[groups[i]] > 1e-6).any()]
             if not todo:
                 return lq, ln, Gk, 0
             seed = int(rng.integers(2 ** 63))
@@ -1574,10 +1579,8 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                 if j in first:
                     g = groups[first[j]]
                     at = int(np.argmax(power[g]))
-                    c, u, v = _cluster_start(lq[g], power[g], at)
-                    cell = int(par[g[at]])
-                    depth = float((c - BV[4 * cell]) @ bnrm[cell])
-                    rect[len(nq)] = (c, u, v, depth)
+                    c, u, v = _cluster_start(lq[g], power[g], at)      # in lamp at's plane: its depth
+                    rect[len(nq)] = (c, u, v, float(depth_l[g[at]]))
                     nq.append(_rectangle(c, u, v, 0.5 * st.refine, 0.5 * st.refine))
                     ng.append(None)
                 else:
@@ -1600,8 +1603,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             for j in range(len(nq)):
                 An[:, j], g = columns(nq[j], nn[j])
                 Gn[:, j] = g if ng[j] is None else ng[j]
-            lbp = np.concatenate([lb[regions], np.zeros((len(nq), 3))])
-            lamp = np.zeros(nr + len(nq))
+            lbp, lamp = lamp_bounds(len(nq))
             # the transport and the other lamps' columns do not change while one lamp moves: only its column
             Mc, Ekc, cols = problem(lv, Gn, An, rows=srows)
             rho_c = [rho_u(a) for a in unseen(lv)]
@@ -1661,7 +1663,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                     cols[c][:, nr + j] = col
             return nq, nn, Gn, len(rect)
 
-        lbj = np.concatenate([lb[regions], np.zeros((len(quads), 3))])
+        lbj = lamp_bounds(len(quads))[0]
         lamj = np.concatenate([lam_k[regions], lam_c])
         # the prior per unit of light sent to the points as in stage 1: its scale from stage 1's columns
         scale0 = float(np.mean(np.sum((A[np.ix_(crows, active)] * (w[crows] * PRIOR_ALBEDO / np.pi)[:, None]) ** 2,
@@ -1674,14 +1676,10 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         order = np.argsort(-pw)
         cum = np.cumsum(pw[order]) / float(pw.sum())
         keep = np.sort(order[:max(1, int(np.searchsorted(cum, st.support_share)) + 1)][:st.max_emitters])
-        js = np.concatenate([np.arange(nr), nr + keep])
-        lq, ln, Gk, lbk, lamk = quads[keep], qn[keep], Gc[:, keep], lbj[js], lamj[js]
+        lq, ln, Gk = quads[keep], qn[keep], Gc[:, keep]
         if st.polish > 0:
-            lq, ln, Gk, n_pol = polish(level, lq, ln, parent[keep], pw[keep], Gk)
-            if n_pol:
-                lbk = np.concatenate([lb[regions], np.zeros((len(lq), 3))])
-                lamk = np.concatenate([lam_k[regions], np.zeros(len(lq))])   # no prior from here on
-            summary["polished_lamps"] = n_pol
+            lq, ln, Gk, summary["polished_lamps"] = polish(level, lq, ln, parent[keep], pw[keep], Gk)
+        lbk, lamk = lamp_bounds(len(lq))       # no prior from here on
         # the chosen lamps' light at all the points (fresh samples)
         Akeep = _quad_columns(isect, P, N, lq, ln, S, rng, eps, pool)
         # with the lamps where they are, each channel's albedo level again at the residual's minimum
