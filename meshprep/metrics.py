@@ -12,15 +12,62 @@ import numpy as np
 from meshprep import constants
 
 
+# Open3D 0.19's __init__ imports two parts nothing here uses: open3d.ml, whose datasets import scikit-learn, and its
+# plotly viewer (dash, plotly, pandas). They were 1-2 of the ~2.5 s `import open3d` took in each process that
+# reads a mesh or fuses depth (4 per 7-Scenes run). open3d_module() lets them load on first use instead
+_LAZY_OPEN3D = {"open3d.ml": (), "open3d.visualization.draw_plotly": ("draw_plotly", "draw_plotly_server")}
+
+
+def _lazy_module(name: str, functions: tuple[str, ...]):
+    """A stand-in for module ``name`` while ``open3d`` is first imported: its ``functions``, called, import the
+    real module (by then the stand-in is gone from ``sys.modules``), put its functions in their place on the
+    parent module and hand on the call."""
+    import importlib
+    import sys
+    import types
+
+    mod = types.ModuleType(name, f"stand-in for {name} during `import open3d` (meshprep.metrics.open3d_module)")
+
+    def forward(fn: str):
+        def call(*args, **kwargs):
+            real = importlib.import_module(name)
+            parent = sys.modules[name.rpartition(".")[0]]
+            for f in functions:
+                setattr(parent, f, getattr(real, f))
+            return getattr(real, fn)(*args, **kwargs)
+
+        call.__name__ = call.__qualname__ = fn
+        return call
+
+    for fn in functions:
+        setattr(mod, fn, forward(fn))
+    return mod
+
+
 def open3d_module():
-    """Import Open3D with its "built with CUDA support, but no suitable CUDA devices found"
-    ImportWarning silenced (meshprep only uses its CPU ray-casting)."""
+    """Import Open3D: its "built with CUDA support, but no suitable CUDA devices found" ImportWarning silenced,
+    ``OMP_WAIT_POLICY`` defaulting to ``PASSIVE`` before the first import (a value the user set wins: Open3D's
+    OpenMP threads otherwise spin while waiting, and on a small machine shared with other jobs that made TSDF
+    fusion of the 7-Scenes sample 10-20x slower, 98 s instead of 5 s wall at load 10 on 2 cores; it only takes
+    effect when no OpenMP runtime is loaded yet), and without :data:`_LAZY_OPEN3D`'s modules: ``open3d.ml`` is
+    there after ``import open3d.ml``, the plotly viewer's functions import it when called."""
+    import os
+    import sys
     import warnings
 
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=".*CUDA", category=ImportWarning)
-        import open3d
-
+    if "open3d" in sys.modules:
+        return sys.modules["open3d"]
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    lazy = {name: _lazy_module(name, fns) for name, fns in _LAZY_OPEN3D.items() if name not in sys.modules}
+    sys.modules.update(lazy)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*CUDA", category=ImportWarning)
+            import open3d
+    finally:
+        for name, mod in lazy.items():
+            if sys.modules.get(name) is mod:
+                del sys.modules[name]
     return open3d
 
 

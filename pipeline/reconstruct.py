@@ -11,33 +11,13 @@ import logging
 
 import numpy as np
 
+from meshprep.metrics import open3d_module  # noqa: F401 - pipeline's Open3D import goes through it
 from pipeline.errors import InputError
 from pipeline.scanformats.common import read_color, read_depth
 from pipeline.scanformats.mesh import canonical_order
 from pipeline.types import Scan
 
 log = logging.getLogger(__name__)
-
-
-def open3d_module():
-    """Import open3d, silencing its import-time warning about CUDA on machines without a GPU.
-
-    Before the first import, ``OMP_WAIT_POLICY`` defaults to ``PASSIVE`` (a value the user set wins):
-    Open3D's OpenMP threads otherwise spin while waiting, and on a small machine shared with other jobs
-    that made TSDF fusion of the 7-Scenes sample 10-20x slower (98 s instead of 5 s wall at load 10 on
-    2 cores). It only takes effect when no OpenMP runtime is loaded yet.
-    """
-    import os
-    import sys
-    import warnings
-
-    if "open3d" not in sys.modules:
-        os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Open3D was built with CUDA support", category=ImportWarning)
-        import open3d
-
-    return open3d
 
 
 def fuse_tsdf(scan: Scan, *, voxel: float, trunc: float, depth_max: float,

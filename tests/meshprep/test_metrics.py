@@ -37,3 +37,38 @@ def test_far_from_origin_keeps_precision():
 def test_zero_area_surface_is_refused():
     with pytest.raises(ValueError, match="zero"):
         sample_surface(np.zeros((3, 3)), np.array([[0, 1, 2]]), 10, seed=0)
+
+
+def test_open3d_import_leaves_out_what_it_does_not_use():
+    """open3d_module(): Open3D without scikit-learn (open3d.ml) and dash (its plotly viewer), which its
+    __init__ imports and nothing here uses, yet both there when asked for. In a fresh interpreter: this
+    process may have imported them already."""
+    import subprocess
+    import sys
+
+    code = """
+import sys
+import numpy as np
+from meshprep.metrics import open3d_module
+o3d = open3d_module()
+print(sorted(m for m in ("sklearn", "dash", "plotly", "pandas", "open3d.ml") if m in sys.modules))
+scene = o3d.t.geometry.RaycastingScene()
+scene.add_triangles(o3d.core.Tensor(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)),
+                    o3d.core.Tensor(np.array([[0, 1, 2]], np.uint32)))
+print(float(scene.compute_distance(o3d.core.Tensor(np.array([[0.2, 0.2, 0.5]], np.float32))).numpy()[0]))
+try:
+    o3d.visualization.draw_plotly()
+except TypeError as e:
+    print(e)
+print(callable(o3d.visualization.draw_plotly) and o3d.visualization.draw_plotly.__module__)
+import open3d.ml
+print(open3d.ml.datasets.__name__, o3d is open3d_module())
+"""
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    lines = r.stdout.splitlines()
+    assert lines[0] == "[]"
+    assert float(lines[1]) == pytest.approx(0.5, abs=1e-6)
+    assert "geometry_list" in lines[2]     # the real draw_plotly's own complaint: the call reached it
+    assert lines[3] == "open3d.visualization.draw_plotly"
+    assert lines[4] == "open3d.ml.datasets True"
