@@ -437,12 +437,21 @@ def _solve_emission(rho_pt: np.ndarray, Ek: np.ndarray, A_ch, L: np.ndarray, w: 
     e = np.zeros((K, 3))
     cost = np.zeros(3)
 
+    def gram(ch: int) -> tuple:
+        s = w * rho_pt[:, ch] / np.pi                   # row scale
+        B = A_ch[ch] * s[:, None]
+        return s, B, B.T @ B
+
+    # channels with the same columns and albedo (stage 1's searches start each level grey) share one product,
+    # the solve's largest: the same bytes, once
+    lead = [next(c for c in range(ch + 1) if A_ch[c] is A_ch[ch] and np.array_equal(rho_pt[:, c], rho_pt[:, ch]))
+            for ch in range(3)]
+    shared = {c: gram(c) for c in set(lead) if lead.count(c) > 1}
+
     def channel(ch: int) -> tuple:
         A = A_ch[ch]
-        s = w * rho_pt[:, ch] / np.pi                   # row scale
-        B = A * s[:, None]
+        s, B, Q = shared[lead[ch]] if lead[ch] in shared else gram(ch)
         y = w * L[:, ch] - s * (Ek[:, ch] + A @ lb[:, ch])
-        Q = B.T @ B
         g = B.T @ y
         # the prior's weight is the data term's scale at a fixed albedo, not at the level being tried:
         # scaled with the level (as rho^2) it priced the light a low level needs less than a high level's,
