@@ -672,6 +672,30 @@ def test_shared_colour_emission():
     assert np.all(chroma[0][:2] > 0.3) and chroma[0][2] < 1e-6    # red and green alike, no blue
 
 
+def test_emission_solve_shares_products_only_where_channels_agree():
+    """Channels with the same columns and albedo share one product (stage 1's grey start): the emission and
+    the prior's cost are bit for bit those of channels given copies (no sharing), also where the columns are
+    shared but one channel's albedo differs, or the albedo agrees but the columns do not."""
+    from pipeline.trace.lightfit import _solve_emission
+
+    rng = np.random.default_rng(11)
+    n, k = 400, 9
+    A = rng.uniform(0.0, 1.0, (n, k)) ** 2
+    A2 = A * rng.uniform(0.8, 1.2, (1, k))
+    L = rng.uniform(0.05, 0.6, (n, 3))
+    Ek, w = rng.uniform(0.0, 0.2, (n, 3)), rng.uniform(0.5, 1.5, n)
+    lb, lam = np.full((k, 3), 0.01), rng.uniform(0.5, 2.0, k)
+    grey = np.full((n, 3), 0.4)
+    tinted = grey.copy()
+    tinted[:, 2] = rng.uniform(0.2, 0.6, n)
+    for cols, rho in (([A, A, A], grey), ([A, A, A], tinted), ([A, A2, A], grey)):
+        for sparsity in (0.0, 0.3):
+            got = _solve_emission(rho, Ek, cols, L, w, lb, lam, sparsity)
+            alone = _solve_emission(rho, Ek, [c.copy() for c in cols], L, w, lb, lam, sparsity)
+            assert np.array_equal(got[0], alone[0]) and np.array_equal(got[1], alone[1])
+            assert np.all(got[0] >= lb) and got[0].sum() > lb.sum()     # the solves did something
+
+
 @pytest.mark.parametrize("best", [0.07, 0.11, 0.42])
 def test_albedo_level_search_reaches_dark_rooms(best):
     """A channel whose photos are best explained at a room albedo level of ``best`` gets that level from the
