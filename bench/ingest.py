@@ -69,7 +69,7 @@ def main() -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         # import cost (open3d, cv2) paid once before timing, so the first setting is not penalised
-        from pipeline.reconstruct import open3d_module
+        from meshprep.metrics import open3d_module
 
         open3d_module()
         for v in VOXELS_M:

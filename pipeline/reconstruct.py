@@ -11,7 +11,7 @@ import logging
 
 import numpy as np
 
-from meshprep.metrics import open3d_module  # noqa: F401 - pipeline's Open3D import goes through it
+from meshprep.metrics import open3d_module
 from pipeline.errors import InputError
 from pipeline.scanformats.common import read_color, read_depth
 from pipeline.scanformats.mesh import canonical_order

@@ -26,7 +26,7 @@ class RoomMesh:
     """
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray) -> None:
-        from pipeline.reconstruct import open3d_module
+        from meshprep.metrics import open3d_module
 
         o3d = open3d_module()
         self._o3d = o3d

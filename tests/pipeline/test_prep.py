@@ -15,7 +15,7 @@ from pipeline.prep import object_proxy
 
 
 def _occupancy_volume(v: np.ndarray, f: np.ndarray, n: int = 200_000) -> float:
-    from pipeline.reconstruct import open3d_module
+    from meshprep.metrics import open3d_module
 
     o3d = open3d_module()
     scene = o3d.t.geometry.RaycastingScene()
