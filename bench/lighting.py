@@ -177,6 +177,20 @@ def light_figures(summary: dict, true_lights: list[dict]) -> list[dict]:
     return out
 
 
+def render_fingerprint(room_dir: Path) -> str:
+    """First 16 hex digits of the sha256 of a suite room's rendered images (its photos and the truth's PNGs,
+    in name order): which render of the suite the figures were measured on. The suite is not bit-reproducible
+    (:mod:`bench.lightsuite`), and a regenerated room moved the fit's figures by up to 1.5 dB at one run seed;
+    rooms that render the same bytes again give the same fingerprint."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for p in sorted((room_dir / "scan" / "frames").glob("*.color.png")) + sorted((room_dir / "truth").glob("*.png")):
+        h.update(p.name.encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()[:16]
+
+
 def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int | None = None,
              reuse: bool = False) -> dict:
     """Every variant on one suite room (the first ``frames`` frames scored; all of them by default)."""
@@ -192,7 +206,7 @@ def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int 
     w = int(room["width"])
     band_px = max(2, round(BAND * w / 640))
     res: dict = {"room": room["room"], "frames": n, "noise_ceiling_db": room["noise_ceiling"]["psnr_objects_db"],
-                 "variants": {}}
+                 "render": render_fingerprint(room_dir), "variants": {}}
     photo_band = []
     for name in variants:
         run = work / name

@@ -87,3 +87,22 @@ def test_fit_summary_is_recorded(results, suite):
     v = results["ceiling"]["variants"]["fit"]["fit"]
     assert v["fitted"] and v["note"] == ""
     json.dumps(results)   # JSON-able
+
+
+def test_results_name_the_render_they_were_measured_on(results, suite, tmp_path):
+    """Each room's results carry a fingerprint of its rendered images: the same bytes give the same
+    fingerprint, one changed byte in one photo another (a regenerated suite is another render)."""
+    import shutil
+
+    from bench.lighting import render_fingerprint
+
+    got = {r: results[r]["render"] for r in ROOMS}
+    assert len(set(got.values())) == len(ROOMS)
+    copy = tmp_path / "room"
+    shutil.copytree(suite / ROOMS[0], copy)
+    assert render_fingerprint(copy) == got[ROOMS[0]]
+    photo = copy / "scan" / "frames" / "frame-000002.color.png"
+    raw = bytearray(photo.read_bytes())
+    raw[-20] ^= 1
+    photo.write_bytes(bytes(raw))
+    assert render_fingerprint(copy) != got[ROOMS[0]]
