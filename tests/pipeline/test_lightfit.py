@@ -672,6 +672,40 @@ def test_shared_colour_emission():
     assert np.all(chroma[0][:2] > 0.3) and chroma[0][2] < 1e-6    # red and green alike, no blue
 
 
+def test_shared_colour_is_one_per_kind_of_emitter():
+    """The emitters the photos saw clipped (a lower bound) and the ones no photo saw are two kinds with a colour
+    each: a warm lamp in view and a neutral fill no photo saw are both recovered exactly, which one colour for
+    every emitter cannot do (it leaves a residual and the fill takes the lamp's colour)."""
+    from pipeline.trace.lightfit import _shared_colour, _solve_emission
+
+    rng = np.random.default_rng(9)
+    n, k = 400, 6
+    A = rng.uniform(0.0, 1.0, (n, k)) ** 3
+    rho = np.full((n, 3), 0.5)
+    zeros, w, lam = np.zeros((n, 3)), np.ones(n), np.zeros(k)
+    lb = np.zeros((k, 3))
+    lb[:2] = 0.9                                   # emitters 0 and 1: seen clipped, at least sensor white
+    warm, fill = np.array([1.0, 0.8, 0.55]), np.array([0.95, 1.0, 1.05])
+    e_true = lb.copy()
+    e_true[0] += 4.0 * warm
+    e_true[4] = 1.2 * fill
+    L = rho / np.pi * (A @ e_true)
+    e, _ = _solve_emission(rho, zeros, [A, A, A], L, w, lb, lam, 0.0, shared_colour=True)
+    np.testing.assert_allclose(e, e_true, atol=1e-6)
+    # the same problem with one colour for all: the fill is as warm as the lamp and the photos are not explained
+    s = w * rho[:, 0] / np.pi
+    B = A * s[:, None]
+    parts = []
+    for c in range(3):
+        y = w * L[:, c] - s * (A @ lb[:, c])
+        parts.append((B, y, B.T @ B, B.T @ y, lam))
+    x0 = e_true - lb
+    x, col = _shared_colour(parts, x0, np.zeros(k, np.int64))
+    assert np.allclose(col, col[0]) and col[0, 2] / col[0, 0] < 0.7
+    res = sum(float(np.sum((parts[c][0] @ (x * col[:, c]) - parts[c][1]) ** 2)) for c in range(3))
+    assert res > 1e-6 * sum(float(parts[c][1] @ parts[c][1]) for c in range(3))
+
+
 def test_emission_solve_shares_products_only_where_channels_agree():
     """Channels with the same columns and albedo share one product (stage 1's grey start): the emission and
     the prior's cost are bit for bit those of channels given copies (no sharing), also where the columns are
