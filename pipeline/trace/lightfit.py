@@ -85,32 +85,33 @@ Yu et al., "Inverse Global Illumination" (SIGGRAPH 1999), reduced to what a CPU 
    trace stage lights and shadows the objects with it, and takes the objects' shadows out of the room's
    light they see with the albedo.
 
-White balance comes from the same fit: each channel has its own albedo level, and the emitters found share
-one colour, fitted over the three channels together (``shared_colour``, :func:`_shared_colour`), so they get
-the colour that explains several surfaces under one light, and the objects' own colours are lit in the
-photo's colour space; no grey-world assumption is made. One colour per kind of emitter: the ones the photos
-saw clipped (a lamp or a window in view, a lower bound on their radiance) share one, the ones no photo saw
-(the box's cells, the lamps hung below them) another. A warm lamp in view and a neutral ceiling fill above
-the views are two fixtures, and the fill lights the tops of the objects on a table: with one colour for both,
-the suite's lamp-in-view room's fill came out as warm as the lamp (blue/red 0.60, the truth's 0.92) and its
-objects 0.80-0.94x the truth's brightness in blue (0.77-0.91x with one colour). Solved channel by channel, each channel put its
-light wherever it explained its own surfaces best: the suite's coloured room came out lit by a pure-red
-and a pure-green lamp, each on the wall of the other colour. The light's colour itself follows from the
-three channels' albedo levels, and each channel's objective is nearly flat about its minimum (the true
-light sits within 0.1-2.6 % of it on the suite) while the light's power goes about as the inverse square of
-the level: with each channel at its own minimum, the coloured room's deep red walls came out lit red (power
-1.21 / 0.58 / 0.58 of the truth's). The last stage therefore takes the levels with a prior pulling the
-light's colour toward the photos' white (``white_prior``, :func:`_white_levels`): a prior on the light, not
-on the surfaces' average (grey world would make those walls' light redder still), that gives way where a
-channel's objective is steep. Projecting the shared colour onto the Planckian locus at fixed levels instead
-(tried before, lighting_seeds.json: not kept) left the levels, and with them the room's albedo, where they were.
-Where stage 3 found lamps, the prior is on the room's brightest surfaces instead (``white_patch``,
-:func:`_grey_levels`): the largest albedo patches of the brightest tenth of the points are pulled toward grey, as
-white paint, a ceiling or a cabinet is. With the suite's true albedos handed to the fit, its lights come out
-the truth's colour (power 0.89-0.93x in every channel, ceiling and coloured rooms), and the median residual
-is the fit's own to within 4 %: the colour error is the albedo's, and the photos barely tell it. The light's
-prior took a warm lamp over white walls for a white one (the suite's ceiling room, blue 1.3x); the brightest
-surfaces, not the light, are what a room most often keeps near grey.
+White balance comes from the same fit: each channel has its own albedo level, and the emitters found share one
+colour, fitted over the three channels together (``shared_colour``, :func:`_shared_colour`), so they get the
+colour that explains several surfaces under one light, and the objects' own colours are lit in the photo's
+colour space; no grey-world assumption is made. One colour per kind of emitter: the ones the photos saw clipped
+(a lamp or a window in view, a lower bound on their radiance) share one, the ones no photo saw (the box's cells,
+the lamps hung below them) another. A warm lamp in view and a neutral ceiling fill above the views are two
+fixtures, and the fill lights the tops of the objects on a table: with one colour for both, the suite's
+lamp-in-view room's fill came out as warm as the lamp (blue/red 0.60, the truth's 0.92); per kind, its objects'
+blue is 0.80-0.94x the truth's at run seeds 0-2 (0.77-0.91x with one colour and the same supports; the fill
+itself still comes out warmer than the truth's, blue/red 0.68-0.78). Solved channel by channel, each channel put
+its light wherever it explained its own surfaces best: the suite's coloured room came out lit by a pure-red and
+a pure-green lamp, each on the wall of the other colour. The light's colour itself follows from the three
+channels' albedo levels, and each channel's objective is nearly flat about its minimum (the true light sits
+within 0.1-2.6 % of it on the suite) while the light's power goes about as the inverse square of the level: with
+each channel at its own minimum, the coloured room's deep red walls came out lit red (power 1.21 / 0.58 / 0.58
+of the truth's). The last stage therefore takes the levels with a prior pulling the light's colour toward the
+photos' white (``white_prior``, :func:`_white_levels`): a prior on the light, not on the surfaces' average (grey
+world would make those walls' light redder still), that gives way where a channel's objective is steep.
+Projecting the shared colour onto the Planckian locus at fixed levels instead (tried before,
+lighting_seeds.json: not kept) left the levels, and with them the room's albedo, where they were. Where stage 3
+found lamps, the prior is on the room's brightest surfaces instead (``white_patch``, :func:`_grey_levels`): the
+largest albedo patches of the brightest tenth of the points are pulled toward grey, as white paint, a ceiling or
+a cabinet is. With the suite's true albedos handed to the fit, its lights come out the truth's colour (power
+0.89-0.93x in every channel, ceiling and coloured rooms), and the median residual is the fit's own to within
+4 %: the colour error is the albedo's, and the photos barely tell it. The light's prior took a warm lamp over
+white walls for a white one (the suite's ceiling room, blue 1.3x); the brightest surfaces, not the light, are
+what a room most often keeps near grey.
 
 Cost (640x480, 8 photos, 16000 points): 10-20 CPU seconds on the light suite; computed once per scan and kept in
 ``RUN/trace/<scene>/lights.npz``.
