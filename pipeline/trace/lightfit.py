@@ -509,9 +509,11 @@ def _shared_colour(parts: list, x0: np.ndarray, kind: np.ndarray, iters: int = 3
         d = [col[kind, c] for c in range(3)]            # each unknown's scale in channel c
         x = _nnls(sum(d[c][:, None] * parts[c][2] * d[c][None, :] for c in range(3)),
                   sum(d[c] * parts[c][3] for c in range(3)), sum(d[c] * parts[c][4] for c in range(3)))
+        X = np.zeros((K, G))                              # x on each kind's rows
+        X[np.arange(K), kind] = x
         for c, (B, y, _, _, lam) in enumerate(parts):
-            U = np.stack([B[:, m] @ x[m] for m in members], axis=1)       # each kind's light at unit colour
-            prior = np.array([float(lam[m] @ x[m]) for m in members])
+            U = B @ X                                     # each kind's light at unit colour
+            prior = lam @ X
             if G == 1:
                 den = float(U[:, 0] @ U[:, 0])
                 col[0, c] = max(0.0, (float(U[:, 0] @ y) - prior[0]) / den) if den > 0 else 0.0
