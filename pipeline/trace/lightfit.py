@@ -513,12 +513,7 @@ def _shared_colour(parts: list, x0: np.ndarray, kind: np.ndarray, iters: int = 3
         X[np.arange(K), kind] = x
         for c, (B, y, _, _, lam) in enumerate(parts):
             U = B @ X                                     # each kind's light at unit colour
-            prior = lam @ X
-            if G == 1:
-                den = float(U[:, 0] @ U[:, 0])
-                col[0, c] = max(0.0, (float(U[:, 0] @ y) - prior[0]) / den) if den > 0 else 0.0
-            else:
-                col[:, c] = _nnls(U.T @ U, U.T @ y, prior)
+            col[:, c] = _nnls(U.T @ U, U.T @ y, lam @ X)
         for g, m in enumerate(members):
             mean = float(col[g].mean())
             if mean <= 0:                                 # a kind that explains nothing in any channel: dark
