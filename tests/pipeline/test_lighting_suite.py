@@ -54,10 +54,14 @@ def test_tiny_suite_is_complete_and_ingests(suite, tmp_path):
 
 
 @pytest.fixture(scope="module")
-def results(suite, tmp_path_factory):
+def work(tmp_path_factory):
+    return tmp_path_factory.mktemp("lighting")
+
+
+@pytest.fixture(scope="module")
+def results(suite, work):
     from bench.lighting import run_room
 
-    work = tmp_path_factory.mktemp("lighting")
     return {r: run_room(suite / r, work / r, ("scan", "fit")) for r in ROOMS}
 
 
@@ -106,3 +110,25 @@ def test_results_name_the_render_they_were_measured_on(results, suite, tmp_path)
     raw[-20] ^= 1
     photo.write_bytes(bytes(raw))
     assert render_fingerprint(copy) != got[ROOMS[0]]
+
+
+def test_a_variant_at_another_seed_runs_on_its_own(results, suite, work):
+    """bench.lighting --seeds: the fit variant again at run seed 1, on the same base (ingest to raster at seed 0),
+    in its own folder, with the seed in its config; the seed draws the fit's points and samples, so its figures
+    are another draw, and seed 0's folder and figures stay as they were."""
+    from bench.lighting import run_room, seeds_summary
+    from pipeline.cli import CONFIG_NAME
+    from pipeline.config import load_config
+
+    room = ROOMS[0]
+    marker = work / room / "fit" / "bench_variant.json"
+    before = marker.read_bytes()
+    got = run_room(suite / room, work / room, ("fit",), seed=1)
+    assert got["seed"] == 1 and results[room]["seed"] == 0
+    assert load_config(work / room / "fit-s1" / CONFIG_NAME).run.seed == 1
+    assert load_config(work / room / "fit" / CONFIG_NAME).run.seed == 0
+    assert marker.read_bytes() == before
+    b0, b1 = results[room]["variants"]["fit"]["brightness"], got["variants"]["fit"]["brightness"]
+    assert b0 != b1, "the same figures at seed 1: the seed did not reach the fit"
+    summary = seeds_summary({0: {room: results[room]}, 1: {room: got}})
+    assert summary["rooms"][room]["brightness"] == [[round(x, 3) for x in b0], [round(x, 3) for x in b1]]

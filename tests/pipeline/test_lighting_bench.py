@@ -1,0 +1,96 @@
+"""bench/lighting.py's figures over run seeds (``--seeds``): what it counts and what it keeps. The runs
+themselves are checked on the tiny Mitsuba suite (test_lighting_suite.py); here the summary and the file."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+
+def _room(psnr: float, brightness, band: float, photo_band: float, render: str = "r") -> dict:
+    """A run_room result with only what the summary reads."""
+    return {"render": render, "photo_band_psnr": photo_band,
+            "variants": {"fit": {"psnr_objects": psnr, "brightness": brightness, "psnr_band": band, "fit_s": 12.34}}}
+
+
+def test_seeds_summary_counts_the_rooms_within_the_target_per_seed():
+    from bench.lighting import seeds_summary
+
+    # seed order as given (the first ran every variant); 0.9 and 1.1 are inside the target, 0.8999 is not
+    per_seed = {
+        2: {"ceiling": _room(30.0, [1.0, 0.95, 0.9], 36.0, 30.0),
+            "spot": _room(26.0, [1.0, 1.0, 0.8999], 31.0, 26.0),
+            "dim": _room(34.0, [1.1, 1.0, 1.0], 40.0, 33.0)},
+        0: {"ceiling": _room(31.0, [1.0, 1.0, 1.0], 36.5, 30.0),
+            "spot": _room(28.0, [0.95, 0.95, 0.95], 31.5, 26.0),
+            "dim": _room(35.0, [1.1001, 1.0, 1.0], 40.0, 33.0, render="other")},
+    }
+    got = seeds_summary(per_seed)
+    assert got["seeds"] == [2, 0]
+    assert got["within_10pct_rooms_per_seed"] == [2, 2]
+    assert got["rooms"]["spot"]["within_10pct"] == [False, True]
+    assert got["rooms"]["dim"]["within_10pct"] == [True, False]
+    assert got["rooms"]["ceiling"]["psnr_objects"] == [30.0, 31.0]
+    assert got["rooms"]["ceiling"]["mean"] == 30.5 and got["rooms"]["ceiling"]["spread"] == 1.0
+    assert got["rooms"]["ceiling"]["band_over_photo_db"] == [6.0, 6.5]
+    assert got["rooms"]["dim"]["render"] == "r"          # the first seed's render
+    assert got["rooms"]["spot"]["fit_s"] == [12.3, 12.3]
+    # the groups: tuned on (ceiling), held out (spot, dim), all; the worst room per seed
+    assert got["groups"]["tuned_on"] == {"rooms": ["ceiling"], "mean_per_seed": [30.0, 31.0], "mean": 30.5,
+                                         "min_per_seed": [30.0, 31.0]}
+    assert got["groups"]["held_out"]["rooms"] == ["spot", "dim"]
+    assert got["groups"]["held_out"]["mean_per_seed"] == [30.0, 31.5]
+    assert got["groups"]["all"]["min_per_seed"] == [26.0, 28.0]
+    assert got["groups"]["all"]["mean_per_seed"] == [30.0, 31.33]
+    json.dumps(got)
+
+
+def test_seeds_summary_leaves_out_a_room_missing_at_a_seed():
+    from bench.lighting import seeds_summary
+
+    per_seed = {0: {"ceiling": _room(31.0, [1, 1, 1], 36.0, 30.0), "spot": _room(28.0, [1, 1, 1], 31.0, 26.0)},
+                1: {"ceiling": _room(30.0, [1, 1, 1], 36.0, 30.0)}}
+    got = seeds_summary(per_seed)
+    assert list(got["rooms"]) == ["ceiling"]
+    assert got["within_10pct_rooms_per_seed"] == [1, 1]
+    assert "held_out" not in got["groups"]
+
+
+def test_merge_keeps_the_earlier_figures(tmp_path):
+    """lighting_seeds.json holds every session's figures and what was tried: a run with --seeds replaces its
+    own keys and keeps the rest, in their order."""
+    from bench.lighting import merge_into
+
+    path = tmp_path / "lighting_seeds.json"
+    old = {"what": "old", "rooms": {"ceiling": {"psnr_objects": [1.0]}}, "session22_diagnostics": {"x": [1, 2]},
+           "before_session8": {"y": "z"}}
+    path.write_text(json.dumps(old, indent=1))
+    merge_into(path, {"what": "new", "rooms": {"spot": {}}, "seeds": [0, 1]})
+    got = json.loads(path.read_text())
+    assert list(got) == ["what", "rooms", "session22_diagnostics", "before_session8", "seeds"]
+    assert got["what"] == "new" and got["rooms"] == {"spot": {}} and got["seeds"] == [0, 1]
+    assert got["session22_diagnostics"] == old["session22_diagnostics"]
+    assert got["before_session8"] == old["before_session8"]
+    new = tmp_path / "fresh.json"
+    merge_into(new, {"what": "w"})
+    assert json.loads(new.read_text()) == {"what": "w"}
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--seeds", "0,x"], "integers"),
+    (["--seeds", "0,0"], "distinct"),
+    (["--seeds", "-1"], "non-negative"),
+    (["--seeds", "0,1", "--variants", "scan"], "add fit to --variants"),
+])
+def test_bad_seeds_are_refused_before_anything_runs(args, says, tmp_path, capsys):
+    """A usage error names the option and the fix, before the suite is built (tens of minutes) or any room runs."""
+    from bench.lighting import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["--suite", str(tmp_path / "no-suite"), "--work", str(tmp_path / "w"), "--out", str(tmp_path / "o"),
+              *args])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "--seeds" in err and says in err
+    assert not (tmp_path / "no-suite").exists() and not (tmp_path / "w").exists()
