@@ -376,11 +376,10 @@ def _code_version() -> str | None:
 
 
 def merge_into(path: Path, block: dict) -> None:
-    """Write ``block``'s keys into the JSON object at ``path``, keeping every other key there (the earlier
-    sessions' figures in lighting_seeds.json) and the keys' order; a new file if there is none."""
-    doc = json.loads(path.read_text()) if path.is_file() else {}
-    doc.update(block)
-    path.write_text(json.dumps(doc, indent=1))
+    """Write ``block``'s keys first into the JSON object at ``path``, then every other key there in its order
+    (the earlier sessions' figures in lighting_seeds.json); a new file if there is none."""
+    old = json.loads(path.read_text()) if path.is_file() else {}
+    path.write_text(json.dumps({**block, **{k: v for k, v in old.items() if k not in block}}, indent=1))
 
 
 def chart(rooms: dict, summary: dict, variants, path: Path) -> None:

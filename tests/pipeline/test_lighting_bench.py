@@ -58,8 +58,8 @@ def test_seeds_summary_leaves_out_a_room_missing_at_a_seed():
 
 
 def test_merge_keeps_the_earlier_figures(tmp_path):
-    """lighting_seeds.json holds every session's figures and what was tried: a run with --seeds replaces its
-    own keys and keeps the rest, in their order."""
+    """lighting_seeds.json holds every session's figures and what was tried: a run with --seeds writes its own
+    keys first and keeps the rest after them, in their order."""
     from bench.lighting import merge_into
 
     path = tmp_path / "lighting_seeds.json"
@@ -68,7 +68,7 @@ def test_merge_keeps_the_earlier_figures(tmp_path):
     path.write_text(json.dumps(old, indent=1))
     merge_into(path, {"what": "new", "rooms": {"spot": {}}, "seeds": [0, 1]})
     got = json.loads(path.read_text())
-    assert list(got) == ["what", "rooms", "session22_diagnostics", "before_session8", "seeds"]
+    assert list(got) == ["what", "rooms", "seeds", "session22_diagnostics", "before_session8"]
     assert got["what"] == "new" and got["rooms"] == {"spot": {}} and got["seeds"] == [0, 1]
     assert got["session22_diagnostics"] == old["session22_diagnostics"]
     assert got["before_session8"] == old["before_session8"]
