@@ -218,7 +218,8 @@ def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int 
                  "render": render_fingerprint(room_dir), "seed": seed, "variants": {}}
     photo_band = []
     for name in variants:
-        run = work / (name if seed == 0 else f"{name}-s{seed}")
+        label = name if seed == 0 else f"{name}-s{seed}"      # its folder and its name in the log
+        run = work / label
         sets = list(SETTINGS[name]) + ([f"trace.lights_file={json.dumps(str(oracle))}"] if name == "oracle" else [])
         sets += [f"run.seed={seed}"] if seed else []
         marker = run / "bench_variant.json"
@@ -295,8 +296,8 @@ def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int 
         v["per_frame"] = frames
         res["variants"][name] = v
         log.info("%s %-9s objects %.2f dB  band %.2f dB  brightness %s  trace + composite %.2f CPU s/frame, fit %.1f "
-                 "CPU s", room["room"], name if seed == 0 else f"{name}-s{seed}", v["psnr_objects"], v["psnr_band"],
-                 v["brightness"], v["trace_composite_cpu_s_per_frame"], fit_s)
+                 "CPU s", room["room"], label, v["psnr_objects"], v["psnr_band"], v["brightness"],
+                 v["trace_composite_cpu_s_per_frame"], fit_s)
     res["photo_band_psnr"] = float(np.mean(photo_band)) if photo_band else float("nan")
     return res
 
@@ -358,8 +359,8 @@ def seeds_summary(per_seed: dict[int, dict], variant: str = "fit") -> dict:
         groups[part] = {"rooms": members, "mean_per_seed": per, "mean": round(float(np.mean(per)), 2),
                         "min_per_seed": [min(rooms[r]["psnr_objects"][i] for r in members) for i in range(len(seeds))]}
     return {"what": (f"bench.lighting {variant} variant at run seeds {', '.join(map(str, seeds))} (the seed draws the "
-                     f"light fit's points and samples and the tracer's samples; seed {seeds[0]}: every variant, the main JSON); "
-                     "each room's 'render' names the suite's render (render_fingerprint)"),
+                     f"light fit's points and samples and the tracer's samples; seed {seeds[0]}: every variant, the "
+                     "main JSON); each room's 'render' names the suite's render (render_fingerprint)"),
             "seeds": seeds, "code": _code_version(), "rooms": rooms, "groups": groups,
             "within_10pct_rooms_per_seed": [sum(rooms[r]["within_10pct"][i] for r in rooms) for i in range(len(seeds))]}
 
