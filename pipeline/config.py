@@ -305,7 +305,8 @@ class TraceConfig:
     lights_file: str = option("", "fit lighting: JSON file of emitters you know, [{\"corners\": 4 x [x, y, z] world "
                               "metres, \"radiance\": [r, g, b] linear, 1 = sensor white}]; each emits on the side "
                               "its corners turn counter-clockwise around (normal (c1 - c0) x (c2 - c0)); they light the "
-                              "room as given and the fit explains only the rest; read before any stage runs",
+                              "room as given and the fit explains only the rest (the scan's surface within 5 cm of "
+                              "one, a lamp in view, is that light, not a second one); read before any stage runs",
                               path="file")
     frames_per_item: int = option(8, "frames of one drop traced per work item: each item builds the drop's "
                                   "scene once; fewer frames per item = finer load balance over workers", min=1)

@@ -172,6 +172,9 @@ LIGHT_SHARE = 0.002           # emitters with at least this share of the fitted 
 # a room most often leaves white)
 CEILING_ALBEDO = 0.8
 CEILING_COS = 0.7             # a closing box cell whose normal is this close to down is the ceiling
+# a mesh vertex this close to a known light (trace.lights_file) is that light's surface: the light suite's oracle
+# hands its lamps in 2 cm off their wall, and a scan's wall around a lamp is a voxel or two rough
+KNOWN_LIGHT_REACH_M = 0.05
 
 
 @dataclass(frozen=True)
@@ -808,6 +811,20 @@ def _unit_normal(quad: np.ndarray) -> np.ndarray:
     return n / max(float(np.linalg.norm(n)), 1e-30)
 
 
+def _near_quads(points: np.ndarray, quads: np.ndarray, reach: float) -> np.ndarray:
+    """(n,) bool: ``points (n, 3)`` within ``reach`` metres of any parallelogram ``quads (C, 4, 3)`` (corners in
+    order)."""
+    P = np.asarray(points, np.float64).reshape(-1, 3)
+    near = np.zeros(len(P), bool)
+    for q in np.asarray(quads, np.float64).reshape(-1, 4, 3):
+        a, b = q[1] - q[0], q[3] - q[0]
+        d = P - q[0]
+        u = np.clip(d @ a / max(float(a @ a), 1e-30), 0.0, 1.0)
+        v = np.clip(d @ b / max(float(b @ b), 1e-30), 0.0, 1.0)
+        near |= np.linalg.norm(d - u[:, None] * a - v[:, None] * b, axis=1) <= reach
+    return near
+
+
 def _quad_area(quads: np.ndarray) -> np.ndarray:
     """(C,) areas of parallelograms ``quads (C, 4, 3)`` (corners in order)."""
     q = np.asarray(quads, np.float64).reshape(-1, 4, 3)
@@ -1258,6 +1275,14 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     light_v = (seen >= 2) & (clipped_v >= st.min_share * np.maximum(seen, 1))
     if colors is not None:   # where the grid rays barely met a vertex, its colour (from every photo) says
         light_v |= (seen < 2) & (np.asarray(colors).reshape(-1, 3).max(axis=1) >= st.threshold)
+    if kq:
+        # the mesh's surface where a known light is (a lamp or window in view, also in the depth maps) is that
+        # light: not a second emitter (clipped, at least sensor white) nor a bright surface in the gathers. As
+        # one, it lit the light suite's lamp-in-view room 1.4x the wall panel handed in
+        on_known = _near_quads(V, np.asarray(kq), KNOWN_LIGHT_REACH_M)
+        summary["vertices_on_known_lights"] = int(on_known.sum())
+        light_v &= ~on_known
+        mesh_rad[on_known] = 0.0
     box_known = box_n > 0
     box_rad = np.zeros((nb, 3))
     box_rad[box_known] = box_sum[box_known] / box_n[box_known, None]

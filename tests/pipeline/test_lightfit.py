@@ -555,6 +555,45 @@ def test_known_lights_light_the_unseen_cells():
     assert np.all(lit > 1.15 * without), (lit, without)
 
 
+def test_a_clipped_lamp_handed_in_is_not_a_second_emitter():
+    """A lamp the photos see clipped (its mesh colours at sensor white) and handed in as a known light, 2 cm off
+    its wall as the light suite's oracle hands them in: the mesh's clipped patch is that lamp, not a clipped
+    region emitting at least sensor white beside it (it lit the suite's lamp-in-view room 1.4x the panel), and
+    it sends nothing in the gathers. A known light elsewhere leaves the patch a clipped region."""
+    v, f, colors = open_room()
+    patch = (np.abs(v[:, 0] - 2.0) < 1e-6) & (np.abs(v[:, 1]) < 0.7) & (v[:, 2] > 0.8) & (v[:, 2] < 1.7)
+    assert patch.sum() >= 4
+    colors = colors.copy()
+    colors[patch] = 255
+    # the patch's extent, 2 cm into the room, facing -x (corners counter-clockwise seen from the room)
+    y0, y1 = v[patch, 1].min(), v[patch, 1].max()
+    z0, z1 = v[patch, 2].min(), v[patch, 2].max()
+    lamp = np.array([[1.98, y0, z0], [1.98, y0, z1], [1.98, y1, z1], [1.98, y1, z0]])
+    assert np.cross(lamp[1] - lamp[0], lamp[2] - lamp[0])[0] < 0
+    elsewhere = (lamp * [-1, 1, 1])[::-1].copy()                    # on the opposite wall, facing +x
+    assert np.cross(elsewhere[1] - elsewhere[0], elsewhere[2] - elsewhere[0])[0] > 0
+    st = FitSettings(points=300, stride=4, refine=0.0)
+    fr = []                                          # photos of the mesh's colours: the patch clipped in them
+    for (_, Kf, T), ids in zip(frames(4, 0), render_ids(v, f, frames(4, 0))):
+        val = np.where(ids >= 0, colors[f[np.maximum(ids, 0)], 0].mean(axis=-1), 0).round().astype(np.uint8)
+        fr.append((np.repeat(val[..., None], 3, axis=2), Kf, T))
+    assert any((img == 255).any() for img, _, _ in fr)
+
+    def fit(known):
+        rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(0), settings=st,
+                             known_lights=[(known, np.full(3, 5.0))])
+        check_finite(rl)
+        return rl
+
+    on, off = fit(lamp), fit(elsewhere)
+    assert on.summary["vertices_on_known_lights"] >= patch.sum()
+    assert on.summary["clipped_regions"] == 0 and on.summary["clipped_vertices"] == 0
+    assert not any(e["kind"] == "clipped region" for e in on.summary["emitters"])
+    assert np.all(on.radiance[:len(v)][patch] == 0)                  # the known light stands for it
+    assert off.summary["clipped_regions"] >= 1 and off.summary["clipped_vertices"] >= 4
+    assert (off.radiance[:len(v)][patch].min(axis=1) >= 0.9).sum() >= 4     # at least sensor white
+
+
 def test_known_light_wound_away_from_every_camera_is_said(caplog):
     """A lamp whose corners run the wrong way emits into the wall (one-sided, as the trace samples it): the
     fit says so in one warning naming the emitter and the fix, and records it; a correct one is not named."""
