@@ -67,11 +67,9 @@ SETTINGS = {
     "published": ["trace.lighting=published", "composite.mode=published"],
     "scan": ["trace.lighting=scan"],
     "fit": ["trace.lighting=fit"],
-    # + trace.lights_file; the other unseen cells only reflect (their emission priced out, and no second or
-    # third stage, which would refit the cells or lamps left over without the prior; the level at the
-    # residual's minimum): the true lights alone
-    "oracle": ["trace.lighting=fit", "trace.fit_sparsity=100", "trace.fit_emitters=0", "trace.fit_refine=0",
-               "trace.fit_level_tolerance=0"],
+    # + trace.lights_file: the true lights alone (the other unseen cells only reflect; the albedo level at the
+    # residual's minimum)
+    "oracle": ["trace.lighting=fit", "trace.lights_complete=true"],
 }
 
 log = logging.getLogger("bench.lighting")

@@ -308,6 +308,10 @@ class TraceConfig:
                               "room as given and the fit explains only the rest (the scan's surface within 5 cm of "
                               "one, a lamp in view, is that light, not a second one); read before any stage runs",
                               path="file")
+    lights_complete: bool = option(False, "fit lighting: the lights of lights_file are every light in the room: the "
+                                   "fit adds none of its own (the unseen surfaces only reflect) and fits the albedo "
+                                   "under them as given; false = it also finds the lights the file leaves out, and "
+                                   "says so when it adds more than half their power")
     frames_per_item: int = option(8, "frames of one drop traced per work item: each item builds the drop's "
                                   "scene once; fewer frames per item = finer load balance over workers", min=1)
 
@@ -482,7 +486,12 @@ def build_config(raw: dict, *, base_dir: str | Path = ".") -> Config:
         raise ConfigError(f"unknown table [{unknown[0]}]; valid tables: {', '.join(TABLES)}", key=unknown[0])
     base = Path(base_dir).resolve()
     raw = _with_preset(raw)
-    return Config(**{name: _build_table(name, TABLES[name], raw.get(name, {}), base) for name in TABLES})
+    cfg = Config(**{name: _build_table(name, TABLES[name], raw.get(name, {}), base) for name in TABLES})
+    if cfg.trace.lights_complete and not cfg.trace.lights_file:
+        raise ConfigError("trace.lights_complete = true: it says trace.lights_file holds every light, but no "
+                          "lights_file is given; name the file, or leave lights_complete false",
+                          key="trace.lights_complete")
+    return cfg
 
 
 def _with_preset(raw: dict) -> dict:

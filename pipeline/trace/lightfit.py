@@ -175,6 +175,8 @@ CEILING_COS = 0.7             # a closing box cell whose normal is this close to
 # a mesh vertex this close to a known light (trace.lights_file) is that light's surface: the light suite's oracle
 # hands its lamps in 2 cm off their wall, and a scan's wall around a lamp is a voxel or two rough
 KNOWN_LIGHT_REACH_M = 0.05
+# with lights handed in, the fit says so when the light it adds of its own has more than this share of their power
+OWN_OVER_KNOWN_SAID = 0.5
 
 
 @dataclass(frozen=True)
@@ -206,6 +208,7 @@ class FitSettings:
     white_prior: float = 0.1    # last stage without white_patch: pull of the emitters' colour toward white (0 = off)
     white_patch: float = 1.0    # last stage: pull of the brightest surfaces' albedo toward grey (0 = white_prior's)
     ceiling_albedo: float = CEILING_ALBEDO  # the unseen ceiling's albedo, white (0 = the upper walls', as the sides)
+    known_complete: bool = False  # the known lights are every light: the fit adds none (trace.lights_complete)
 
 
 @dataclass(frozen=True)
@@ -1781,6 +1784,27 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         E = Ek + sheet_light(backs, np.full((npatch + 1, 3), 0.5))
         best_level, res_curve = None, []
         note = "no unseen or clipped light source visible from the photographed surfaces: lit by the scan itself"
+    elif kq and st.known_complete:
+        # the lights handed in are every light in the room (trace.lights_complete): nothing else emits (the
+        # unknown cells reflect; those the photos saw clipped keep their lower bound), and with the lights' power
+        # and colour given, each channel's albedo level is where the photos are explained best (a parabola
+        # through the grid's lowest residual): no search for more light, no prior on its colour. Searched twice:
+        # the unseen walls reflect like the upper walls found under the first level's light
+        nothing = np.zeros(0, np.int64)
+
+        def objective_known(lv: float) -> np.ndarray:
+            return fit_at(np.full(3, lv), iters=2, active=nothing, sparsity=0.0)[2]
+
+        for again in (True, False):
+            res_curve = _level_search(objective_known, pool)
+            best_level = _curve_minimum(np.asarray(ALBEDO_LEVELS), res_curve)
+            (e, Lu, E), rho, _ = fit_at(best_level, iters=3, active=nothing, sparsity=0.0, on=pool)
+            if again:
+                unseen_ratio[:] = _wall_ratio(L, E, w, N @ upv, P @ upv - h_low, best_level)
+        summary["unseen_albedo_ratio"] = [round(float(x), 4) for x in unseen_ratio]
+        best_level = [float(x) for x in best_level]
+        res_curve = res_curve @ LUMINANCE_F64
+        note = ""
     else:
         # each channel's albedo level where the photos are explained best (the light the known surfaces
         # send each other fixes it, channel by channel: the light's colour comes out of the fit)
@@ -1873,6 +1897,17 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             emitters.append({"centre": [round(float(x), 3) for x in c], "area_m2": round(float(area), 4),
                              "radiance": [round(float(x), 4) for x in rd],
                              "power_share": round(float(power[k] / total), 4), "kind": kind})
+    if kq:
+        # the light the fit found besides the known lights, over theirs: where a file holds every light but the
+        # fit is free to add more, it may put light elsewhere (the light suite's window room, its window handed
+        # in: 1.6x too bright); said, with the fix
+        known_power = float(_quad_area(np.asarray(kq)) @ (k_rad @ LUMINANCE_F64))
+        own = total / known_power if known_power > 0 else None
+        summary["own_over_known_power"] = None if own is None else round(own, 4)
+        if own is not None and own > OWN_OVER_KNOWN_SAID and not st.known_complete:
+            log.warning("light fit of %s: the fit added light of its own with %.2fx the power of the %d light(s) in "
+                        "trace.lights_file; if the file holds every light in the room, set trace.lights_complete = "
+                        "true (the fit then adds none)", name, own, len(kq))
     pred = rho[patch] / np.pi * E
     rel = np.abs(pred - L).sum(axis=1) / np.maximum(L.sum(axis=1), 1e-9)
     summary.update(fitted=note == "", note=note, points=int(n), albedo_level=best_level,

@@ -219,7 +219,8 @@ def fit_settings(cfg: TraceConfig, width: int):
                        albedo_group=cfg.fit_albedo_group,
                        threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale,
                        shared_colour=cfg.fit_light_colour == "shared", white_prior=cfg.fit_white_prior,
-                       white_patch=cfg.fit_white_patch, ceiling_albedo=cfg.fit_ceiling_albedo)
+                       white_patch=cfg.fit_white_patch, ceiling_albedo=cfg.fit_ceiling_albedo,
+                       known_complete=cfg.lights_complete)
 
 
 # the light fit's source, the modules it computes with and this one (which picks its photos and settings), relative

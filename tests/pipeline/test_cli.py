@@ -123,6 +123,17 @@ def test_bad_lights_file_is_a_config_error(tmp_path, capsys, content, words):
     _assert_one_line_error(code, err, words, tmp_path / "out")
 
 
+def test_lights_complete_without_a_lights_file_is_a_config_error(tmp_path, capsys):
+    """trace.lights_complete says the lights file holds every light: without one it is a one-line error naming
+    the key, the file it is in and the fix; with one it loads."""
+    code, err = _run(["run", _cfg(tmp_path, "[trace]\nlights_complete = true\n"), "--out", tmp_path / "out"], capsys)
+    _assert_one_line_error(code, err, ["c.toml", "trace.lights_complete", "lights_file"], tmp_path / "out")
+    (tmp_path / "lamps.json").write_text('[{"corners": [[0, 0, 2], [1, 0, 2], [1, 1, 2], [0, 1, 2]], '
+                                         '"radiance": [3, 3, 3]}]')
+    cfg = load_config(_cfg(tmp_path, "[trace]\nlights_complete = true\nlights_file = 'lamps.json'\n"))
+    assert cfg.trace.lights_complete
+
+
 def test_good_lights_file_is_resolved_from_the_config_folder(tmp_path):
     (tmp_path / "lamps.json").write_text('[{"corners": [[0, 0, 2], [1, 0, 2], [1, 1, 2], [0, 1, 2]], '
                                          '"radiance": [3, 3, 3]}]')

@@ -594,6 +594,44 @@ def test_a_clipped_lamp_handed_in_is_not_a_second_emitter():
     assert (off.radiance[:len(v)][patch].min(axis=1) >= 0.9).sum() >= 4     # at least sensor white
 
 
+def test_lights_complete_adds_no_light_and_their_power_sets_the_albedo(caplog):
+    """The hanging lamp handed in (its true place and size) with lights_complete: the fit adds no emitter of its
+    own and does not warn, and the lamp's power sets the albedo level: the photos' 0.3 to within 15 % (a little
+    under it: the fit also counts the light the mesh's colours send, which the stand-in's photos leave out), and
+    handed in at half its power, a level at least 1.5x as high (the photos' radiance is albedo x light). Left free
+    to add light, the fit given a weaker lamp in a far corner instead adds the hanging lamp itself, and says so
+    with the fix."""
+    v, f, _ = open_room()
+    centre, radiance = np.array([0.3, -0.2, 1.7]), 400.0
+    colors, fr = hanging_lamp_photos(v, f, centre, radiance, albedo=0.3)
+    lamp = centre + 0.05 * np.array([[-1, -1, 0], [-1, 1, 0], [1, 1, 0], [1, -1, 0]])   # faces down
+    assert np.cross(lamp[1] - lamp[0], lamp[2] - lamp[0])[2] < 0
+
+    def fit(power, complete, where=lamp):
+        st = FitSettings(points=800, stride=2, cell=0.4, known_complete=complete)
+        rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(3), settings=st,
+                             known_lights=[(where, np.full(3, power * radiance))])
+        check_finite(rl)
+        assert rl.summary["fitted"], rl.summary["note"]
+        return rl
+
+    with caplog.at_level(logging.WARNING, logger="pipeline.trace.lightfit"):
+        full, half = fit(1.0, True), fit(0.5, True)
+    assert full.summary["emitters"] == [] and half.summary["emitters"] == []
+    assert full.summary["own_over_known_power"] == 0.0
+    # only the known lamp is sampled as a light
+    assert full.light_tri.sum() == 2 and full.light_tri[-2:].all()
+    assert not [r for r in caplog.records if "lights_complete" in r.getMessage()]
+    lv_full, lv_half = np.asarray(full.summary["albedo_level"]), np.asarray(half.summary["albedo_level"])
+    assert np.all(np.abs(lv_full / 0.3 - 1) < 0.15) and np.all(lv_half > 1.5 * lv_full), (lv_full, lv_half)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="pipeline.trace.lightfit"):
+        free = fit(0.25, False, lamp + [-1.8, 1.7, 0.7])
+    assert free.summary["own_over_known_power"] > 1.0 and free.summary["emitters"], free.summary
+    said = [r.getMessage() for r in caplog.records if "lights_complete" in r.getMessage()]
+    assert len(said) == 1 and "trace.lights_file" in said[0], said
+
+
 def test_known_light_wound_away_from_every_camera_is_said(caplog):
     """A lamp whose corners run the wrong way emits into the wall (one-sided, as the trace samples it): the
     fit says so in one warning naming the emitter and the fix, and records it; a correct one is not named."""
