@@ -169,7 +169,8 @@ def probe_room(room_dir: Path, run_dir: Path, *, rays: int = RAYS, spp: int = SP
     groups = {"floor": (nz > 0.9) & (h < 0.1), "table": (nz > 0.9) & (np.abs(h - table) < 0.1),
               "walls": np.abs(nz) < 0.2, "all": np.ones(len(P), bool)}
     out: dict = {"room": room["room"], "points": int(len(P)), "lights": str(lights[0].relative_to(run_dir)),
-                 "fit_summary": {k: rl.summary.get(k) for k in ("albedo_level", "known_lights", "own_over_known_power")},
+                 "fit_summary": {k: rl.summary.get(k) for k in
+                                 ("albedo_level", "known_lights", "own_over_known_power")},
                  "groups": {}}
     for g, m in groups.items():
         if m.sum() < 5:
