@@ -19,8 +19,9 @@ objects at their true poses, every frame), then trace and composite once per var
   grey-world energy balance for unseen directions), full blend;
 - ``fit``: the emitters recovered by inverse rendering (:mod:`pipeline.trace.lightfit`), full blend;
 - ``oracle``: the true emitters handed to our tracer (``trace.lights_file`` from the suite's
-  ``lights.json``; every other unseen cell only reflects, the albedo level fitted), full blend: what the
-  rest of the chain (BSDF, shadows, edges, camera look) still loses with perfect lights.
+  ``lights.json`` with ``trace.lights_complete``: every other unseen cell only reflects, the albedo level
+  fitted), full blend: what the rest of the chain (BSDF, shadows, edges, camera look) still loses with perfect
+  lights.
 
 Metrics per frame, against the truth (8-bit sRGB, as written): PSNR and SSIM (skimage, 7x7, mean of the
 map) over the true object pixels and over a band of :data:`BAND` px around them (at 640 px width), the
