@@ -177,6 +177,7 @@ CEILING_COS = 0.7             # a closing box cell whose normal is this close to
 KNOWN_LIGHT_REACH_M = 0.05
 # with lights handed in, the fit says so when the light it adds of its own has more than this share of their power
 OWN_OVER_KNOWN_SAID = 0.5
+REGION_SAMPLES = 16           # area samples per (unseen cell, clipped region) pair
 
 
 @dataclass(frozen=True)
@@ -910,6 +911,42 @@ def _quad_columns(isect, P: np.ndarray, N: np.ndarray, quads: np.ndarray, normal
     return _fill_columns(np.zeros((n, len(quads))), samples, jobs(), pool)
 
 
+def _area_points(tris: np.ndarray, count: int, corners: np.ndarray, normals: np.ndarray, areas: np.ndarray,
+                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """``count`` points drawn uniformly over the area of triangles ``tris`` (indices into ``corners (T, 3, 3)``,
+    ``normals (T, 3)``, ``areas (T,)``): the points (count, 3), their triangles' normals (count, 3) and the
+    triangles' total area; None where that is 0."""
+    ar = areas[tris]
+    tot = float(ar.sum())
+    if tot <= 0:
+        return None
+    pick = tris[np.minimum(np.searchsorted(np.cumsum(ar) / tot, rng.random(count)), len(tris) - 1)]
+    r1, r2 = rng.random(count), rng.random(count)
+    s1 = np.sqrt(r1)
+    q = corners[pick]
+    lp = (1 - s1)[:, None] * q[:, 0] + (s1 * (1 - r2))[:, None] * q[:, 1] + (s1 * r2)[:, None] * q[:, 2]
+    return lp, normals[pick], tot
+
+
+def _region_columns(isect, P: np.ndarray, N: np.ndarray, regions: list, corners: np.ndarray, normals: np.ndarray,
+                    areas: np.ndarray, samples: int, side: int, rng: np.random.Generator, eps: float,
+                    pool=None) -> np.ndarray:
+    """(n, R) irradiance at points ``P`` (normals ``N``) per unit radiance of each region of ``regions`` (arrays
+    of triangle indices, as :func:`_area_points` takes them): ``samples`` area samples per pair, with visibility
+    through ``isect``. A region emits from its triangles' normal side (``side`` +1), the other side (-1) or
+    both (0)."""
+    Pi, Ni = np.repeat(P, samples, axis=0), np.repeat(N, samples, axis=0)
+
+    def jobs():
+        for r, tris in enumerate(regions):
+            drawn = _area_points(tris, len(Pi), corners, normals, areas, rng)
+            if drawn is not None:
+                yield r, functools.partial(_sampled_irradiance, isect, Pi, Ni, drawn[0], drawn[1] * (side or 1),
+                                           drawn[2], eps, two_sided=side == 0)
+
+    return _fill_columns(np.zeros((len(P), len(regions))), samples, jobs(), pool)
+
+
 def _lamp_clusters(quads: np.ndarray, nrm: np.ndarray, size: float) -> list[np.ndarray]:
     """The lamps (corners ``quads (C, 4, 3)``, normals ``nrm (C, 3)``) that touch, as index arrays: facing one way,
     centres within 1.5 x ``size`` of one another across the normal (diagonal neighbours too), at any height along
@@ -1373,18 +1410,11 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
 
     def jobs():
         for k, tris in enumerate(el_tris + known_tris):
-            ar = tarea[tris]
-            tot = float(ar.sum())
-            if tot <= 0:
-                continue
-            pick = tris[np.minimum(np.searchsorted(np.cumsum(ar) / tot, rng.random(n * S)), len(tris) - 1)]
-            r1, r2 = rng.random(n * S), rng.random(n * S)
-            s1 = np.sqrt(r1)
-            q = p_[pick]
-            lp = (1 - s1)[:, None] * q[:, 0] + (s1 * (1 - r2))[:, None] * q[:, 1] + (s1 * r2)[:, None] * q[:, 2]
-            # a clipped mesh region (or a known light) lights both ways
-            yield k, functools.partial(_sampled_irradiance, isect, Pi, Ni, lp, tn[pick], tot, eps,
-                                       two_sided=box_unknown.size <= k < K)
+            drawn = _area_points(tris, n * S, p_, tn, tarea, rng)
+            if drawn is not None:
+                # a clipped mesh region (or a known light) lights both ways
+                yield k, functools.partial(_sampled_irradiance, isect, Pi, Ni, drawn[0], drawn[1], drawn[2], eps,
+                                           two_sided=box_unknown.size <= k < K)
 
     _fill_columns(A, S, jobs(), pool)
     if kq:   # the known lights' irradiance joins the known part
@@ -1411,10 +1441,17 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         hit = hit[~_unseen_side(hu.prim[hit], du[hit], tn, nt, seen_side)]
         tri = hu.prim[hit]
         j = unknown_tri[tri]
-        un = j >= 0
+        un = (j >= 0) & (j < nbu)             # unseen cells (clipped regions: sampled below)
         np.add.at(G, (ku[hit[un]], j[un]), np.pi / Mu)
-        kn = hit[~un & (tri < nbt)]
+        kn = hit[(j < 0) & (tri < nbt)]
         np.add.at(Eu, ku[kn], np.pi / Mu * _at(vrad, AF, hu.prim[kn], hu.u[kn], hu.v[kn]))
+        if groups:
+            # what the clipped regions send the unseen cells, sampled over their area (from the side the cameras
+            # saw, as the gather takes it): the cells' hemisphere rays meet a small bright region seldom, and the
+            # lamp-in-view room's unseen ceiling got 0.70-1.33x its mean light from the wall panel over four run
+            # seeds (area samples: within 0.5 %)
+            G[:nbu, nbu:] = _region_columns(isect, bcen[box_unknown], bnrm[box_unknown], groups, p_, tn, tarea,
+                                            REGION_SAMPLES, seen_side, rng, eps, pool)
         if kq:   # and what the known lights send them (sampled by area, as the trace stage's lights are)
             Eu[:nbu] += _quad_columns(isect, bcen[box_unknown], bnrm[box_unknown], np.asarray(kq), np.asarray(kq_n),
                                       16, rng, eps, pool) @ k_rad
