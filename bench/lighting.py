@@ -365,11 +365,13 @@ def seeds_summary(per_seed: dict[int, dict], variant: str = "fit") -> dict:
 
 
 def _code_version() -> str | None:
-    """The checkout's commit (``+`` when its tracked files differ from it), None outside a git checkout."""
+    """The checkout's commit (``+`` when its tracked files other than the results differ from it: the run writes
+    ``OUT.json`` before this is asked), None outside a git checkout."""
     try:
         head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                               check=True).stdout.strip()
-        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=ROOT).returncode != 0
+        dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", ".", ":(exclude)bench/results"],
+                               cwd=ROOT).returncode != 0
     except (OSError, subprocess.CalledProcessError):
         return None
     return head + ("+" if dirty else "")
