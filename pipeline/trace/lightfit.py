@@ -1813,15 +1813,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         summary["refined_candidates"] = int(len(quads))
         return e3, Lu3, E3, rho3, lq, ln, el, level, res3, obj3
 
-    if K == 0 or active.size == 0:
-        # nothing unknown the points can see: the mesh and observed holes are the light (scan lighting)
-        e = lb.copy()
-        Lu = lb.copy()
-        rho = np.full((npatch, 3), 0.5)
-        E = Ek + sheet_light(backs, np.full((npatch + 1, 3), 0.5))
-        best_level, res_curve = None, []
-        note = "no unseen or clipped light source visible from the photographed surfaces: lit by the scan itself"
-    elif kq and st.known_complete:
+    if kq and st.known_complete:
         # the lights handed in are every light in the room (trace.lights_complete): nothing else emits (the
         # unknown cells reflect; those the photos saw clipped keep their lower bound), and with the lights' power
         # and colour given, each channel's albedo level is where the photos are explained best (a parabola
@@ -1842,6 +1834,14 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         best_level = [float(x) for x in best_level]
         res_curve = res_curve @ LUMINANCE_F64
         note = ""
+    elif K == 0 or active.size == 0:
+        # nothing unknown the points can see: the mesh and observed holes are the light (scan lighting)
+        e = lb.copy()
+        Lu = lb.copy()
+        rho = np.full((npatch, 3), 0.5)
+        E = Ek + sheet_light(backs, np.full((npatch + 1, 3), 0.5))
+        best_level, res_curve = None, []
+        note = "no unseen or clipped light source visible from the photographed surfaces: lit by the scan itself"
     else:
         # each channel's albedo level where the photos are explained best (the light the known surfaces
         # send each other fixes it, channel by channel: the light's colour comes out of the fit)

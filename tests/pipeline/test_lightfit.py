@@ -664,6 +664,31 @@ def test_a_clipped_region_lights_the_unseen_cells_as_its_area_says():
     assert abs(one / want - 1) < 0.05, (one, want)
 
 
+def test_lights_complete_fits_the_albedo_in_a_room_with_nothing_unknown():
+    """A closed room (no hole, nothing clipped: no unknown for the fit) lit by a hanging lamp handed in with
+    lights_complete: the albedo is still fitted under the lamp (the photos' 0.3 to within 15 %), not left at the
+    scan lighting's fallback, which is what the fit does without it."""
+    from tests.pipeline.shapes import box_room
+
+    v, f = box_room((-2, -2, 0), (2, 2, 2.5), n=6)
+    centre, radiance = np.array([0.3, -0.2, 1.7]), 400.0
+    colors, fr = hanging_lamp_photos(v, f, centre, radiance, albedo=0.3)
+    lamp = centre + 0.05 * np.array([[-1, -1, 0], [-1, 1, 0], [1, 1, 0], [1, -1, 0]])   # faces down
+
+    def fit(complete):
+        rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(3),
+                             settings=FitSettings(points=800, stride=2, known_complete=complete),
+                             known_lights=[(lamp, np.full(3, radiance))])
+        check_finite(rl)
+        assert rl.summary["unknown_cells"] == 0 and rl.summary["clipped_regions"] == 0
+        return rl.summary
+
+    free, complete = fit(False), fit(True)
+    assert free["albedo_level"] is None and "lit by the scan itself" in free["note"]
+    assert complete["fitted"] and complete["emitters"] == [], complete["note"]
+    assert np.all(np.abs(np.asarray(complete["albedo_level"]) / 0.3 - 1) < 0.15), complete["albedo_level"]
+
+
 def test_known_light_wound_away_from_every_camera_is_said(caplog):
     """A lamp whose corners run the wrong way emits into the wall (one-sided, as the trace samples it): the
     fit says so in one warning naming the emitter and the fix, and records it; a correct one is not named."""
