@@ -1,4 +1,5 @@
-"""Tiny analytic meshes for the tests' reference scenes (NumPy only; a test helper, not part of the product).
+"""Tiny analytic meshes for the tests' reference scenes, and the closed forms they are checked against (NumPy
+only; a test helper, not part of the product).
 
 Triangles are counter-clockwise seen from the side their normal points to.
 """
@@ -79,3 +80,11 @@ def box_room(lo, hi, *, n: int = 8) -> tuple[np.ndarray, np.ndarray]:
         fs.append(ff + off)
         off += len(vv)
     return np.concatenate(vs), np.concatenate(fs).astype(np.int32)
+
+
+def parallel_rectangle_factor(a: float, b: float, h: float) -> float:
+    """Form factor from a small upward-facing patch to a parallel a x b rectangle h above, the patch under one
+    of its corners (Howell's catalogue of configuration factors, B-3)."""
+    X, Y = a / h, b / h
+    sx, sy = np.sqrt(1 + X * X), np.sqrt(1 + Y * Y)
+    return float((X / sx * np.arctan(Y / sx) + Y / sy * np.arctan(X / sy)) / (2 * np.pi))

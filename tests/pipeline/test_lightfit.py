@@ -12,7 +12,7 @@ import pytest
 
 from pipeline.color import srgb_to_linear
 from pipeline.trace.lightfit import FitSettings, RoomLights, closing_box, fit_room_lights
-from tests.pipeline.shapes import box_room, look_at
+from tests.pipeline.shapes import box_room, look_at, parallel_rectangle_factor
 
 W, H = 64, 48
 K = np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
@@ -650,7 +650,7 @@ def test_a_clipped_region_lights_the_unseen_cells_as_its_area_says():
     isect = EmbreeIntersector(square.astype(np.float32), faces.astype(np.int32))
     P = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
     N = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0]])       # below, facing up; above, facing down
-    want = np.pi * 4 * _parallel_rectangle_factor(0.25, 0.25, 1.0)
+    want = np.pi * 4 * parallel_rectangle_factor(0.25, 0.25, 1.0)
 
     def cols(side, samples=4096, seed=0):
         return _region_columns(isect, P, N, [np.arange(2)], corners, tn, areas, samples, side,
@@ -668,8 +668,6 @@ def test_lights_complete_fits_the_albedo_in_a_room_with_nothing_unknown():
     """A closed room (no hole, nothing clipped: no unknown for the fit) lit by a hanging lamp handed in with
     lights_complete: the albedo is still fitted under the lamp (the photos' 0.3 to within 15 %), not left at the
     scan lighting's fallback, which is what the fit does without it."""
-    from tests.pipeline.shapes import box_room
-
     v, f = box_room((-2, -2, 0), (2, 2, 2.5), n=6)
     centre, radiance = np.array([0.3, -0.2, 1.7]), 400.0
     colors, fr = hanging_lamp_photos(v, f, centre, radiance, albedo=0.3)
@@ -942,14 +940,6 @@ def test_the_side_of_a_sheet_no_camera_saw_is_found():
     assert rl.summary["seen_side"] == 0, rl.summary["camera_sides"]
 
 
-def _parallel_rectangle_factor(a: float, b: float, h: float) -> float:
-    """Form factor from a small upward-facing patch to a parallel a x b rectangle h above, the patch under one
-    of its corners (Howell's catalogue of configuration factors, B-3)."""
-    X, Y = a / h, b / h
-    sx, sy = np.sqrt(1 + X * X), np.sqrt(1 + Y * Y)
-    return float((X / sx * np.arctan(Y / sx) + Y / sy * np.arctan(X / sy)) / (2 * np.pi))
-
-
 def test_the_unseen_side_of_a_sheet_sends_its_own_albedo_of_the_light_below():
     """Points on the floor right under a paper-thin table top (1.2 x 0.8 m, 0.8 m up) get, per unit albedo
     and unit radiance below, the irradiance pi F of the sheet over them (F: the analytic form factor to a
@@ -984,7 +974,7 @@ def test_the_unseen_side_of_a_sheet_sends_its_own_albedo_of_the_light_below():
     Nw = np.concatenate([N, np.tile([1.0, 0.0, 0.0], (len(wall), 1))])
     patch = np.r_[np.zeros(nf, np.int64), np.ones(len(top), np.int64), np.full(len(wall), 2)]  # floor, top, wall
     B = _sheet_backs(Pw, Nw, patch, 3, owner[back], pos, seen_n, 0.5, np.pi / M).toarray()
-    want = np.pi * 4 * _parallel_rectangle_factor(0.6, 0.4, 0.8)       # F = 0.31 of the floor's sky
+    want = np.pi * 4 * parallel_rectangle_factor(0.6, 0.4, 0.8)       # F = 0.31 of the floor's sky
     got = B[:nf].sum(axis=1)
     np.testing.assert_allclose(got.mean(), want, rtol=0.03)              # 8 x 4096 rays: 0.8 % noise
     np.testing.assert_allclose(got, want, rtol=0.1)

@@ -9,16 +9,9 @@ import pytest
 
 from bench.lightprobe import OFFSET_M, gather, meters, unseen_ceiling
 from pipeline.trace.lightfit import RoomLights, closing_box
+from tests.pipeline.shapes import parallel_rectangle_factor
 
 UP = np.array([0.0, 0.0, 1.0])
-
-
-def _corner_factor(a: float, b: float, h: float) -> float:
-    """Form factor from a small upward-facing patch to a parallel a x b rectangle h above, the patch under one
-    of its corners (Howell's catalogue of configuration factors, B-3)."""
-    X, Y = a / h, b / h
-    sx, sy = np.sqrt(1 + X * X), np.sqrt(1 + Y * Y)
-    return float((X / sx * np.arctan(Y / sx) + Y / sy * np.arctan(X / sy)) / (2 * np.pi))
 
 
 def test_meter_under_a_lamp_reads_its_irradiance_and_nothing_with_the_lamp_hidden():
@@ -36,7 +29,7 @@ def test_meter_under_a_lamp_reads_its_irradiance_and_nothing_with_the_lamp_hidde
         "type": "rectangle", "to_world": mi.ScalarTransform4f(M.tolist()),
         "emitter": {"type": "area", "radiance": {"type": "rgb", "value": L.tolist()}}}})
     p, n = np.zeros((1, 3)), np.tile(UP, (1, 1))
-    want = np.pi * L * 4 * _corner_factor(0.5, 0.5, 1.0 - OFFSET_M)
+    want = np.pi * L * 4 * parallel_rectangle_factor(0.5, 0.5, 1.0 - OFFSET_M)
     got = meters(scene, p, n, spp=65536, indirect=False)[0]
     assert np.all(np.abs(got / want - 1) < 0.03), (got, want)
     assert np.all(meters(scene, p, n, spp=1024, indirect=True) == 0)
