@@ -69,19 +69,27 @@ def meters(scene, points: np.ndarray, normals: np.ndarray, spp: int, indirect: b
     return out
 
 
-def gather(rl, points: np.ndarray, normals: np.ndarray, rays: int, rng: np.random.Generator) -> dict:
-    """The irradiance the fitted room ``rl`` sends ``points``, by what the cosine-weighted rays meet: ``mesh``
-    (the scan's surfaces, the side the photos saw), ``box`` (the closing box's cells), ``lights`` (emitters:
-    not counted by the meter), ``unseen_side`` (a mesh triangle's other side: replaced in the fit); each (n, 3),
-    and ``box_share`` (n,) the share of rays meeting the box."""
+def room_scene(rl) -> tuple:
+    """The fitted room ``rl``'s triangles for ray casting: (its Embree intersector, faces (T, 3), unit normals
+    (T, 3) as wound)."""
     from pipeline.trace.intersect import EmbreeIntersector
-    from pipeline.trace.lightfit import _at, _gather
 
     V, F = np.asarray(rl.vertices, np.float64), np.asarray(rl.faces, np.int64)
-    isect = EmbreeIntersector(V.astype(np.float32), F.astype(np.int32))
     q = V[F]
     tn = np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0])
     tn /= np.maximum(np.linalg.norm(tn, axis=1, keepdims=True), 1e-30)
+    return EmbreeIntersector(V.astype(np.float32), F.astype(np.int32)), F, tn
+
+
+def gather(rl, points: np.ndarray, normals: np.ndarray, rays: int, rng: np.random.Generator,
+           scene: tuple | None = None) -> dict:
+    """The irradiance the fitted room ``rl`` sends ``points``, by what the cosine-weighted rays meet: ``mesh``
+    (the scan's surfaces, the side the photos saw), ``box`` (the closing box's cells), ``lights`` (emitters:
+    not counted by the meter), ``unseen_side`` (a mesh triangle's other side: replaced in the fit); each (n, 3),
+    and ``box_share`` (n,) the share of rays meeting the box. ``scene``: :func:`room_scene` of ``rl`` if built."""
+    from pipeline.trace.lightfit import _at, _gather
+
+    isect, F, tn = scene or room_scene(rl)
     n = len(points)
     _, hits, d = _gather(isect, np.asarray(points, np.float64), np.asarray(normals, np.float64), rays, rng, OFFSET_M)
     hit = np.flatnonzero(hits.hit)
@@ -99,16 +107,11 @@ def gather(rl, points: np.ndarray, normals: np.ndarray, rays: int, rng: np.rando
     return out
 
 
-def photographed_points(rl, scan, every: int = 2, stride: int = STRIDE) -> tuple[np.ndarray, np.ndarray]:
+def photographed_points(rl, scan, every: int = 2, stride: int = STRIDE,
+                        scene: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Points (n, 3) of the fitted room's scan mesh that every ``every``-th photo of ``scan`` sees at every
-    ``stride``-th pixel, and their normals (n, 3) turned to the camera."""
-    from pipeline.trace.intersect import EmbreeIntersector
-
-    V, F = np.asarray(rl.vertices, np.float64), np.asarray(rl.faces, np.int64)
-    isect = EmbreeIntersector(V.astype(np.float32), F.astype(np.int32))
-    q = V[F]
-    tn = np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0])
-    tn /= np.maximum(np.linalg.norm(tn, axis=1, keepdims=True), 1e-30)
+    ``stride``-th pixel, and their normals (n, 3) turned to the camera. ``scene``: :func:`room_scene` of ``rl``."""
+    isect, _, tn = scene or room_scene(rl)
     P, N = [], []
     w, h = int(scan.width), int(scan.height)
     for i in range(0, scan.num_frames, every):
@@ -158,8 +161,9 @@ def probe_room(room_dir: Path, run_dir: Path, *, rays: int = RAYS, spp: int = SP
     scan = read_scan(room_dir / "scan")
     up = np.asarray(scan.up_w, np.float64)
     up /= np.linalg.norm(up)
-    P, N = photographed_points(rl, scan)
-    model = gather(rl, P, N, rays, np.random.default_rng(seed))
+    room_rays = room_scene(rl)                    # built once, cast by both
+    P, N = photographed_points(rl, scan, scene=room_rays)
+    model = gather(rl, P, N, rays, np.random.default_rng(seed), scene=room_rays)
     scene = mitsuba_scene(room_spec(room["room"]), None, room_dir / "mitsuba")
     expo = float(room["exposure"])                 # the photos' (and so the fit's) radiance per Mitsuba's
     truth = expo * meters(scene, P, N, spp, indirect=True)
