@@ -121,35 +121,30 @@ def gather(rl, points: np.ndarray, normals: np.ndarray, rays: int, rng: np.rando
 
 def emitter_irradiance(rl, points: np.ndarray, normals: np.ndarray, samples: int, rng: np.random.Generator,
                        scene: tuple | None = None) -> np.ndarray:
-    """(n, 3) irradiance the fitted room ``rl``'s sampled lights (``light_tri``: the emitters the trace stage
-    samples) send ``points`` facing ``normals``: ``samples`` points per receiver on the light triangles, drawn in
-    proportion to their power (area x radiance, each triangle's mean over its corners: the fit gives a light one
-    radiance), emitting from both sides as the tracer's next-event estimation takes them, with visibility
-    through the fitted room. A small bright lamp is what cosine-weighted gather rays miss most (in the light
-    suite's ceiling room a 32768-ray gather put the objects at 0.84x the truth's light, the trace at 1.04x)."""
+    """(n, 3) irradiance the fitted room ``rl``'s sampled lights (``light_tri``) send ``points`` facing ``normals``,
+    with the trace stage's own light sampling (:func:`pipeline.trace.lights.build_area_lights`: a triangle by power,
+    then a point by area, its radiance interpolated): ``samples`` points per receiver, emitting from both sides as
+    the tracer's next-event estimation takes them, with visibility through the fitted room. A small bright lamp is
+    what cosine-weighted gather rays miss most (in the light suite's ceiling room a 32768-ray gather put the
+    objects at 0.84x the truth's light, the trace at 1.04x)."""
     from pipeline.trace.lightfit import _sampled_irradiance
+    from pipeline.trace.lights import build_area_lights, sample_area_lights
 
     isect, F, tn = scene or room_scene(rl)
     points, normals = np.asarray(points, np.float64), np.asarray(normals, np.float64)
+    V, E = np.asarray(rl.vertices, np.float64), np.asarray(rl.radiance, np.float64)
+    lights = build_area_lights(V, F, E, np.asarray(rl.light_tri, bool))
     out = np.zeros((len(points), 3))
-    lt = np.flatnonzero(np.asarray(rl.light_tri, bool))
-    if lt.size == 0:
+    if lights.count == 0:
         return out
-    q = np.asarray(rl.vertices, np.float64)[F[lt]]
-    area = 0.5 * np.linalg.norm(np.cross(q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]), axis=1)
-    Le = np.asarray(rl.radiance, np.float64)[F[lt]].mean(axis=1)
-    power = area * Le.sum(axis=1)
-    if power.sum() <= 0:
-        return out
-    prob = power / power.sum()
     for i, (p, n) in enumerate(zip(points, normals)):
-        k = rng.choice(lt.size, samples, p=prob)
-        r1, r2 = rng.random(samples), rng.random(samples)
-        s1 = np.sqrt(r1)
-        lp = (1 - s1)[:, None] * q[k, 0] + (s1 * (1 - r2))[:, None] * q[k, 1] + (s1 * r2)[:, None] * q[k, 2]
-        g = _sampled_irradiance(isect, np.tile(p, (samples, 1)), np.tile(n, (samples, 1)), lp, tn[lt[k]], 1.0,
+        tri, b1, b2, pdf = sample_area_lights(lights, V, F, *rng.random((3, samples)))
+        f = F[tri]
+        b = np.stack([1 - b1 - b2, b1, b2], axis=1)[:, :, None]
+        lp, Le = (b * V[f]).sum(axis=1), (b * E[f]).sum(axis=1)
+        g = _sampled_irradiance(isect, np.tile(p, (samples, 1)), np.tile(n, (samples, 1)), lp, tn[tri], 1.0,
                                 OFFSET_M, two_sided=True)
-        out[i] = (g[:, None] * Le[k] * (area[k] / prob[k])[:, None]).mean(axis=0)
+        out[i] = (g[:, None] * Le / pdf[:, None]).mean(axis=0)
     return out
 
 
