@@ -74,10 +74,12 @@ def test_emitter_irradiance_under_a_lamp_is_howells_factor_and_a_shade_stops_it(
     the second's by the same formula, as the difference of two rectangles), to 3 % (Monte Carlo). Both sides
     emit, as the tracer samples them: the lamp wound facing up lights the point the same. A shade between
     the point and the lamps leaves nothing."""
-    def room(lamp_z: float, up_wound: bool, shade: bool) -> RoomLights:
+    h = 1.0                                   # the lamps' height over the point
+
+    def room(up_wound: bool, shade: bool) -> RoomLights:
         quad = np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]])
-        lamp = np.c_[quad, np.full(4, lamp_z)]
-        lamp2 = np.c_[quad * [0.5, 0.5] + [1.25, 0.0], np.full(4, lamp_z)]       # 0.5 x 0.5 m at x 1.0-1.5
+        lamp = np.c_[quad, np.full(4, h)]
+        lamp2 = np.c_[quad * [0.5, 0.5] + [1.25, 0.0], np.full(4, h)]       # 0.5 x 0.5 m at x 1.0-1.5
         sh = np.c_[quad * 4, np.full(4, 0.5)]
         V = np.concatenate([lamp, lamp2] + ([sh] if shade else [])).astype(np.float32)
         down, up = [[0, 2, 1], [0, 3, 2]], [[0, 1, 2], [0, 2, 3]]
@@ -90,11 +92,10 @@ def test_emitter_irradiance_under_a_lamp_is_howells_factor_and_a_shade_stops_it(
                           num_mesh_tris=0, summary={})
 
     f = parallel_rectangle_factor
-    h = 1.0
     second = 2 * (f(1.5, 0.25, h) - f(1.0, 0.25, h))     # x 1.0-1.5, y -0.25-0.25: two strips from the axis
     want = np.pi * (np.array([1.0, 2.0, 3.0]) * 4 * f(0.5, 0.5, h) + 0.5 * second)
     p, n = np.zeros((1, 3)), UP[None]
     for up_wound in (False, True):
-        got = emitter_irradiance(room(1.0, up_wound, False), p, n, 65536, np.random.default_rng(1))[0]
+        got = emitter_irradiance(room(up_wound, False), p, n, 65536, np.random.default_rng(1))[0]
         assert np.all(np.abs(got / want - 1) < 0.03), (up_wound, got, want)
-    assert np.all(emitter_irradiance(room(1.0, False, True), p, n, 4096, np.random.default_rng(1)) == 0)
+    assert np.all(emitter_irradiance(room(False, True), p, n, 4096, np.random.default_rng(1)) == 0)
