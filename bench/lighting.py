@@ -32,7 +32,9 @@ the distance from it to that power's centroid. Seconds: CPU seconds of the trace
 per frame (the child processes' user + system time), and the fit's own CPU seconds per scan.
 
 Honest tuning: :data:`TUNE_ROOMS` were used to choose the fit's settings; the headline figures are the
-:data:`HELD_OUT` rooms'. Both halves are reported.
+:data:`HELD_OUT` rooms'. Both halves are reported. :data:`DEV_ROOMS` (``--rooms coloured_dev``) are for tuning
+too, but outside the suite's six: reported as their own group ("dev"), never in "all" or the count of rooms
+within the brightness target.
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.lightsuite import DEV_ROOMS, ROOMS, build_suite
 from bench.reference import masked_psnr
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -303,7 +306,8 @@ def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int 
 
 def summarise(rooms: dict, variants) -> dict:
     out = {}
-    for part, names in (("held_out", HELD_OUT), ("tuned_on", TUNE_ROOMS), ("all", tuple(rooms))):
+    suite = tuple(r for r in rooms if r not in DEV_ROOMS)
+    for part, names in (("held_out", HELD_OUT), ("tuned_on", TUNE_ROOMS), ("dev", DEV_ROOMS), ("all", suite)):
         names = [r for r in names if r in rooms]
         if not names:
             continue
@@ -350,7 +354,8 @@ def seeds_summary(per_seed: dict[int, dict], variant: str = "fit") -> dict:
                     "mean": round(float(np.mean(psnr)), 2), "spread": round(float(np.ptp(psnr)), 2),
                     "render": got[0].get("render")}
     groups = {}
-    for part, members in (("tuned_on", TUNE_ROOMS), ("held_out", HELD_OUT), ("all", tuple(names))):
+    suite = tuple(r for r in names if r not in DEV_ROOMS)
+    for part, members in (("tuned_on", TUNE_ROOMS), ("held_out", HELD_OUT), ("dev", DEV_ROOMS), ("all", suite)):
         members = [r for r in members if r in rooms]
         if not members:
             continue
@@ -361,7 +366,7 @@ def seeds_summary(per_seed: dict[int, dict], variant: str = "fit") -> dict:
                      f"light fit's points and samples and the tracer's samples; seed {seeds[0]}: every variant, the "
                      "main JSON); each room's 'render' names the suite's render (render_fingerprint)"),
             "seeds": seeds, "code": _code_version(), "rooms": rooms, "groups": groups,
-            "within_10pct_rooms_per_seed": [sum(rooms[r]["within_10pct"][i] for r in rooms) for i in range(len(seeds))]}
+            "within_10pct_rooms_per_seed": [sum(rooms[r]["within_10pct"][i] for r in suite) for i in range(len(seeds))]}
 
 
 def _code_version() -> str | None:
@@ -434,7 +439,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rooms", default="")
     p.add_argument("--variants", default=",".join(VARIANTS))
     p.add_argument("--work", default=str(WORK))
-    p.add_argument("--out", default=str(RESULTS / "lighting"))
+    p.add_argument("--out", default=None, help=f"output prefix (default {RESULTS / 'lighting'}; required with a "
+                   f"tuning-only room, {', '.join(DEV_ROOMS)})")
     p.add_argument("--frames", type=int, default=None, help="score the first N frames of each room (tuning)")
     p.add_argument("--reuse", action="store_true", help="keep variants already run in --work with the same settings")
     p.add_argument("--set", action="append", default=[], help="extra TABLE.KEY=VALUE for the fit variant (tuning)")
@@ -453,9 +459,14 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--seeds {a.seeds!r} runs the fit variant at the seeds after the first: add fit to --variants")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", stream=sys.stdout)
     suite = Path(a.suite)
-    from bench.lightsuite import ROOMS, build_suite
-
     rooms = [r for r in (a.rooms.split(",") if a.rooms else ROOMS) if r]
+    unknown = [r for r in rooms if r not in ROOMS + DEV_ROOMS]
+    if unknown:
+        p.error(f"--rooms: unknown room(s) {', '.join(unknown)}; choose from {', '.join(ROOMS + DEV_ROOMS)}")
+    if a.out is None and set(rooms) & set(DEV_ROOMS):
+        p.error(f"--rooms {a.rooms}: {', '.join(sorted(set(rooms) & set(DEV_ROOMS)))} is for tuning only and stays out "
+                f"of the headline results in {RESULTS}: give --out, e.g. --out /tmp/dev/lighting")
+    a.out = a.out or str(RESULTS / "lighting")
     missing = [r for r in rooms if not (suite / r / "done.json").is_file()]
     if missing:
         log.info("building the suite's rooms %s (cached in %s)", missing, suite)

@@ -18,7 +18,9 @@ What it builds, per room (:data:`ROOMS`, one light set-up each):
   ``window`` a cool 1.5 x 1 m window on a side wall, no ceiling lamp; ``spot`` a 10 cm square light 1.2 m
   above the table (hard shadows) with a weak ceiling fill, metered lower (:data:`LEVEL_SPOT`) so that the
   objects under it do not clip; ``coloured_walls`` deep red and green walls under white ceiling panels;
-  ``dim`` one small lamp, exposed to a mean sRGB code of ~50;
+  ``dim`` one small lamp, exposed to a mean sRGB code of ~50; for tuning only (:data:`DEV_ROOMS`, built when
+  asked for, never in the headline) ``coloured_dev``: yellow, blue and teal walls under two white ceiling
+  panels placed elsewhere;
 - 8 cameras (640x480, fx = fy = 525, cx = 319.5, cy = 239.5) on an arc around the table (1.4-2.2 m away,
   1.3-1.7 m high, looking at the table with jitter); the ceiling is never in view (checked analytically);
 - three LM-O models (mm -> m; :data:`OBJ_IDS`) standing on the table top (lowest vertex on it, random yaw,
@@ -112,6 +114,9 @@ SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 LMO = SHARED_DATA / "objects" / "lmo" / "models"
 
 ROOMS = ("ceiling", "lamp_in_view", "window", "spot", "coloured_walls", "dim")
+# rooms for tuning only, never in the headline: the tuned half of ROOMS has no room whose walls are strongly
+# coloured, so nothing tuned on it could be checked on the albedo / illumination ambiguity but on a held-out room
+DEV_ROOMS = ("coloured_dev",)
 OBJ_IDS = (1, 5, 9)            # ape (brown), watering can (white/grey), duck (yellow)
 WIDTH, HEIGHT = 640, 480
 FX = FY = 525.0                # at 640x480; scaled with the width for smaller images
@@ -214,13 +219,15 @@ def _panel(name, centre, u, v, radiance, note="") -> Emitter:
 
 def room_spec(name: str) -> RoomSpec:
     """Geometry, materials and emitters of room ``name`` (one of :data:`ROOMS`)."""
-    if name not in ROOMS:
-        raise ValueError(f"unknown room {name!r}; choose from {', '.join(ROOMS)}")
+    if name not in ROOMS + DEV_ROOMS:
+        raise ValueError(f"unknown room {name!r}; choose from {', '.join(ROOMS + DEV_ROOMS)}")
     X, Y, Z = ROOM_SIZE
     ex, ey, ez = np.eye(3)
     walls = {"x0": (0.62, 0.60, 0.55), "x1": (0.62, 0.60, 0.55), "y0": (0.62, 0.60, 0.55), "y1": (0.55, 0.58, 0.60)}
     if name == "coloured_walls":
         walls = {"x0": (0.60, 0.07, 0.06), "x1": (0.07, 0.42, 0.09), "y0": (0.62, 0.60, 0.55), "y1": (0.60, 0.07, 0.06)}
+    elif name == "coloured_dev":   # other hues, other places, and other lamps than coloured_walls
+        walls = {"x0": (0.58, 0.46, 0.07), "x1": (0.08, 0.15, 0.50), "y0": (0.62, 0.60, 0.55), "y1": (0.07, 0.38, 0.33)}
     tx, ty = TABLE_CENTRE
     top_t, leg = 0.04, 0.05
     legs = []
@@ -262,6 +269,9 @@ def room_spec(name: str) -> RoomSpec:
         emitters = [_panel("spot", (tx, ty, TABLE_HEIGHT + 1.2), 0.1 * ey, 0.1 * ex, 1500.0 * NEUTRAL,
                            "10 cm square light 1.2 m above the table, facing down: hard shadows"),
                     _panel("ceiling_fill", (2.0, 1.5, zc), 1.0 * ey, 1.0 * ex, 1.0 * NEUTRAL, "weak ceiling fill")]
+    elif name == "coloured_dev":
+        emitters = [_panel(f"ceiling_{i}", (x, y, zc), down_u, down_v, 12.0 * NEUTRAL, "ceiling panel, white")
+                    for i, (x, y) in enumerate([(1.2, 3.3), (2.9, 1.9)])]
     elif name == "coloured_walls":
         emitters = [_panel(f"ceiling_{i}", (x, y, zc), down_u, down_v, 12.0 * NEUTRAL, "ceiling panel, white")
                     for i, (x, y) in enumerate([(1.5, 2.0), (2.5, 3.6)])]
@@ -734,7 +744,7 @@ def build_room(out: Path, name: str, *, frames: int = FRAMES, width: int = WIDTH
     root = Path(out) / name
     done = root / "done.json"
     spec = room_spec(name)
-    room_seed = seed + 100_000 * ROOMS.index(name)
+    room_seed = seed + 100_000 * (ROOMS + DEV_ROOMS).index(name)
     scan, truth_dir, work = root / "scan", root / "truth", root / "mitsuba"
     models = load_models(obj_ids)
     K = intrinsics(width, height)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 
@@ -57,6 +58,26 @@ def test_seeds_summary_leaves_out_a_room_missing_at_a_seed():
     assert "held_out" not in got["groups"]
 
 
+def test_a_tuning_room_outside_the_suite_is_its_own_group():
+    """A room of bench.lightsuite.DEV_ROOMS (tuning only) is reported as the group "dev", never in "all", in
+    the count of rooms within the target, or in summarise's "all"."""
+    from bench.lighting import seeds_summary, summarise
+
+    per_seed = {0: {"ceiling": _room(31.0, [1, 1, 1], 36.0, 30.0), "coloured_dev": _room(20.0, [1, 1, 1], 30.0, 25.0)},
+                1: {"ceiling": _room(30.0, [1, 1, 1], 36.0, 30.0), "coloured_dev": _room(22.0, [2, 1, 1], 30.0, 25.0)}}
+    got = seeds_summary(per_seed)
+    assert got["within_10pct_rooms_per_seed"] == [1, 1]
+    assert got["rooms"]["coloured_dev"]["within_10pct"] == [True, False]
+    assert got["groups"]["dev"] == {"rooms": ["coloured_dev"], "mean_per_seed": [20.0, 22.0], "mean": 21.0,
+                                    "min_per_seed": [20.0, 22.0]}
+    assert got["groups"]["all"]["rooms"] == ["ceiling"] and got["groups"]["all"]["mean_per_seed"] == [31.0, 30.0]
+    for r in per_seed[0].values():
+        r["variants"]["fit"]["cpu_s_per_frame"] = 1.0
+    s = summarise(per_seed[0], ("fit",))
+    assert s["all"]["rooms"] == ["ceiling"] and s["dev"]["rooms"] == ["coloured_dev"]
+    assert s["dev"]["fit"]["psnr_objects_mean"] == 20.0 and s["all"]["fit"]["psnr_objects_mean"] == 31.0
+
+
 def test_merge_keeps_the_earlier_figures(tmp_path):
     """lighting_seeds.json holds every session's figures and what was tried: a run with --seeds writes its own
     keys first and keeps the rest after them, in their order."""
@@ -94,3 +115,34 @@ def test_bad_seeds_are_refused_before_anything_runs(args, says, tmp_path, capsys
     err = capsys.readouterr().err
     assert "--seeds" in err and says in err
     assert not (tmp_path / "no-suite").exists() and not (tmp_path / "w").exists()
+
+
+@pytest.mark.parametrize("rooms, says", [("ceiling,kitchen", "unknown room(s) kitchen"),
+                                         ("coloured_dev", "give --out")])
+def test_bad_rooms_are_refused_before_anything_runs(rooms, says, tmp_path, capsys):
+    """An unknown room is named with the rooms to choose from; a tuning-only room without --out would write the
+    headline results (bench/results/lighting.json) with it: refused, with the fix."""
+    from bench.lighting import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["--suite", str(tmp_path / "no-suite"), "--work", str(tmp_path / "w"), "--rooms", rooms])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "--rooms" in err and says in err
+    assert not (tmp_path / "no-suite").exists() and not (tmp_path / "w").exists()
+
+
+def test_the_tuning_room_is_not_a_held_out_room_again():
+    """coloured_dev (tuning only) has strongly coloured walls like the held-out coloured room, but other hues on
+    every coloured wall and lamps elsewhere, and is not one of the suite's six."""
+    from bench.lightsuite import DEV_ROOMS, ROOMS, room_spec
+
+    assert DEV_ROOMS == ("coloured_dev",) and not set(DEV_ROOMS) & set(ROOMS)
+    dev, held = room_spec("coloured_dev"), room_spec("coloured_walls")
+    walls = {s.name: s.base for s in dev.surfaces if s.name.startswith("wall_")}
+    held_walls = {s.name: s.base for s in held.surfaces if s.name.startswith("wall_")}
+    coloured = [k for k, b in walls.items() if max(b) > 3 * min(b)]
+    assert len(coloured) == 3 and all(walls[k] != held_walls[k] for k in coloured)
+    assert min(float(np.linalg.norm(a.centre - b.centre)) for a in dev.emitters for b in held.emitters) > 0.3
+    with pytest.raises(ValueError, match="coloured_dev"):
+        room_spec("kitchen")
