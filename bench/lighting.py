@@ -334,10 +334,11 @@ def within(brightness, tolerance: float = BRIGHTNESS_TOLERANCE) -> bool:
 def seeds_summary(per_seed: dict[int, dict], variant: str = "fit") -> dict:
     """The figures of ``variant`` over run seeds, from ``per_seed`` {seed: {room: :func:`run_room`'s result}}:
     per room its objects PSNR, brightness, band over the untouched photo and fit seconds at each seed (in
-    seed order), their mean and spread; per group of rooms (tuned on, held out, all) the mean and the
-    worst room per seed; and how many rooms have every channel's brightness within
-    :data:`BRIGHTNESS_TOLERANCE` at each seed. Seeds in ``per_seed``'s order (the first is lighting.json's);
-    rooms missing at some seed are left out."""
+    seed order), their mean and spread; per group of rooms (tuned on, held out, the tuning-only rooms as
+    "dev", all: the suite's) the mean and the worst room per seed; and how many of the suite's rooms have every
+    channel's brightness within :data:`BRIGHTNESS_TOLERANCE` at each seed (the tuning-only rooms counted apart,
+    ``within_10pct_dev_rooms_per_seed``, when there are any). Seeds in ``per_seed``'s order (the first is
+    lighting.json's); rooms missing at some seed are left out."""
     seeds = list(per_seed)
     names = [r for r in per_seed[seeds[0]] if all(variant in per_seed[s].get(r, {}).get("variants", {}) for s in seeds)]
     rooms: dict = {}
@@ -362,11 +363,16 @@ def seeds_summary(per_seed: dict[int, dict], variant: str = "fit") -> dict:
         per = [round(float(np.mean([rooms[r]["psnr_objects"][i] for r in members])), 2) for i in range(len(seeds))]
         groups[part] = {"rooms": members, "mean_per_seed": per, "mean": round(float(np.mean(per)), 2),
                         "min_per_seed": [min(rooms[r]["psnr_objects"][i] for r in members) for i in range(len(seeds))]}
-    return {"what": (f"bench.lighting {variant} variant at run seeds {', '.join(map(str, seeds))} (the seed draws the "
-                     f"light fit's points and samples and the tracer's samples; seed {seeds[0]}: every variant, the "
-                     "main JSON); each room's 'render' names the suite's render (render_fingerprint)"),
-            "seeds": seeds, "code": _code_version(), "rooms": rooms, "groups": groups,
-            "within_10pct_rooms_per_seed": [sum(rooms[r]["within_10pct"][i] for r in suite) for i in range(len(seeds))]}
+    out = {"what": (f"bench.lighting {variant} variant at run seeds {', '.join(map(str, seeds))} (the seed draws the "
+                    f"light fit's points and samples and the tracer's samples; seed {seeds[0]}: every variant, the "
+                    "main JSON); each room's 'render' names the suite's render (render_fingerprint)"),
+           "seeds": seeds, "code": _code_version(), "rooms": rooms, "groups": groups,
+           "within_10pct_rooms_per_seed": [sum(rooms[r]["within_10pct"][i] for r in suite) for i in range(len(seeds))]}
+    dev = [r for r in rooms if r in DEV_ROOMS]
+    if dev:
+        out["within_10pct_dev_rooms_per_seed"] = [sum(rooms[r]["within_10pct"][i] for r in dev)
+                                                  for i in range(len(seeds))]
+    return out
 
 
 def _code_version() -> str | None:
@@ -417,9 +423,10 @@ def chart(rooms: dict, summary: dict, variants, path: Path) -> None:
         ax[1].bar(x + k * wd, [rooms[r]["variants"].get(v, {}).get("psnr_objects", np.nan) for r in names], wd,
                   color=cols.get(v), label=v)
     ax[1].axhline(24, ls=":", c="k", lw=0.8)
-    ax[1].set_xticks(x + 0.4 - wd / 2, [r + ("*" if r in HELD_OUT else "") for r in names], rotation=20, fontsize=8)
+    ax[1].set_xticks(x + 0.4 - wd / 2, [r + ("*" if r in HELD_OUT else "+" if r in DEV_ROOMS else "") for r in names],
+                     rotation=20, fontsize=8)
     ax[1].set_ylabel("objects PSNR (dB)")
-    ax[1].set_title("per room (* held out)")
+    ax[1].set_title("per room (* held out, + tuning only)")
     ax[1].legend(fontsize=8)
     for k, v in enumerate(variants):
         ax[2].bar(x + k * wd, [rooms[r]["variants"].get(v, {}).get("psnr_band", np.nan) - rooms[r]["photo_band_psnr"]
@@ -459,11 +466,11 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--seeds {a.seeds!r} runs the fit variant at the seeds after the first: add fit to --variants")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", stream=sys.stdout)
     suite = Path(a.suite)
-    rooms = [r for r in (a.rooms.split(",") if a.rooms else ROOMS) if r]
+    rooms = [r.strip() for r in (a.rooms.split(",") if a.rooms else ROOMS) if r.strip()]
     unknown = [r for r in rooms if r not in ROOMS + DEV_ROOMS]
     if unknown:
         p.error(f"--rooms: unknown room(s) {', '.join(unknown)}; choose from {', '.join(ROOMS + DEV_ROOMS)}")
-    if a.out is None and set(rooms) & set(DEV_ROOMS):
+    if not a.out and set(rooms) & set(DEV_ROOMS):
         p.error(f"--rooms {a.rooms}: {', '.join(sorted(set(rooms) & set(DEV_ROOMS)))} is for tuning only and stays out "
                 f"of the headline results in {RESULTS}: give --out, e.g. --out /tmp/dev/lighting")
     a.out = a.out or str(RESULTS / "lighting")
@@ -481,6 +488,7 @@ def main(argv: list[str] | None = None) -> int:
                        for r in rooms}
     summary = summarise(res, variants)
     doc = {"summary": summary, "rooms": res, "band_px_at_640": BAND, "tuned_on": TUNE_ROOMS, "held_out": HELD_OUT,
+           "dev": DEV_ROOMS,
            "suite": str(suite), "machine": os.uname().nodename, "date": time.strftime("%Y-%m-%d %H:%M")}
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -490,7 +498,9 @@ def main(argv: list[str] | None = None) -> int:
     if len(per_seed) > 1:
         block = seeds_summary(per_seed)
         merge_into(out.with_name(out.stem + "_seeds.json"), block)
-        print("within 10 % per seed:", block["within_10pct_rooms_per_seed"], json.dumps(block["groups"]))
+        dev = block.get("within_10pct_dev_rooms_per_seed")
+        print("within 10 % per seed:", block["within_10pct_rooms_per_seed"],
+              f"(tuning rooms: {dev})" if dev is not None else "", json.dumps(block["groups"]))
     return 0
 
 

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.lighting import SUITE, WORK
-from bench.lightsuite import MAX_DEPTH
+from bench.lightsuite import DEV_ROOMS, MAX_DEPTH
 
 log = logging.getLogger("bench.lightprobe")
 
@@ -310,13 +310,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", default=str(WORK), help="bench.lighting's work folder (ROOM/fit: the fit run)")
     p.add_argument("--rooms", default="spot,window")
     p.add_argument("--variants", default="fit", help="the run folders under each room (fit, oracle, fit-s1, ...)")
-    p.add_argument("--out", default=str(RESULTS / "lightprobe"))
+    p.add_argument("--out", default=None, help=f"output prefix (default {RESULTS / 'lightprobe'}; required with a "
+                   "tuning-only room, bench.lightsuite.DEV_ROOMS)")
     p.add_argument("--spp", type=int, default=SPP)
     p.add_argument("--rays", type=int, default=RAYS)
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    rooms = [r for r in a.rooms.split(",") if r]
+    rooms = [r.strip() for r in a.rooms.split(",") if r.strip()]
     variants = [v for v in a.variants.split(",") if v]
+    dev = sorted(set(rooms) & set(DEV_ROOMS))
+    if not a.out and dev:
+        p.error(f"--rooms {a.rooms}: {', '.join(dev)} is for tuning only and stays out of the results in {RESULTS}: "
+                f"give --out, e.g. --out /tmp/dev/lightprobe")
+    a.out = a.out or str(RESULTS / "lightprobe")
     missing = [f"{r}/{v}" for r in rooms for v in variants
                if not (Path(a.work) / r / v).is_dir() or not (Path(a.suite) / r).is_dir()]
     if missing:

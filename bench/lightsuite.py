@@ -1,6 +1,6 @@
-"""Independent ground-truth suite: six procedural rooms under the light set-ups real rooms have, written as
-7-Scenes scans, with the true images of the same rooms with LM-O objects at known poses, all path-traced by
-Mitsuba 3.
+"""Independent ground-truth suite: six procedural rooms under the light set-ups real rooms have (and a seventh
+for tuning only, :data:`DEV_ROOMS`), written as 7-Scenes scans, with the true images of the same rooms with LM-O
+objects at known poses, all path-traced by Mitsuba 3.
 
 Run: ``nice -n 10 .venv/bin/python -m bench.lightsuite --out bench/cache/lightsuite [--rooms a,b] [--spp N]
 [--tiny]``. Generated once and cached: a room with ``OUT/<room>/done.json`` (written last) is skipped, an
@@ -218,7 +218,7 @@ def _panel(name, centre, u, v, radiance, note="") -> Emitter:
 
 
 def room_spec(name: str) -> RoomSpec:
-    """Geometry, materials and emitters of room ``name`` (one of :data:`ROOMS`)."""
+    """Geometry, materials and emitters of room ``name`` (one of :data:`ROOMS` or :data:`DEV_ROOMS`)."""
     if name not in ROOMS + DEV_ROOMS:
         raise ValueError(f"unknown room {name!r}; choose from {', '.join(ROOMS + DEV_ROOMS)}")
     X, Y, Z = ROOM_SIZE

@@ -99,3 +99,15 @@ def test_emitter_irradiance_under_a_lamp_is_howells_factor_and_a_shade_stops_it(
         got = emitter_irradiance(room(up_wound, False), p, n, 65536, np.random.default_rng(1))[0]
         assert np.all(np.abs(got / want - 1) < 0.03), (up_wound, got, want)
     assert np.all(emitter_irradiance(room(False, True), p, n, 4096, np.random.default_rng(1)) == 0)
+
+
+def test_a_tuning_room_without_out_is_refused(tmp_path, capsys):
+    """bench.lightprobe on the tuning-only room without --out would overwrite the results the README links (the
+    six rooms'): refused with the fix before anything runs."""
+    from bench.lightprobe import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["--suite", str(tmp_path / "s"), "--work", str(tmp_path / "w"), "--rooms", "spot, coloured_dev"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "coloured_dev is for tuning only" in err and "give --out" in err
