@@ -53,7 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.lightsuite import DEV_ROOMS, ROOMS, build_suite
+from bench.lightsuite import DEV_ROOMS, ROOMS, build_suite, room_list, tuning_rooms_need_out
 from bench.reference import masked_psnr
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -304,10 +304,16 @@ def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int 
     return res
 
 
+def _groups(names) -> tuple:
+    """The groups of rooms reported, (name, rooms): tuned on, held out, the tuning-only rooms ("dev"), and all
+    the suite's rooms among ``names`` (the tuning-only ones not among them)."""
+    return (("tuned_on", TUNE_ROOMS), ("held_out", HELD_OUT), ("dev", DEV_ROOMS),
+            ("all", tuple(r for r in names if r not in DEV_ROOMS)))
+
+
 def summarise(rooms: dict, variants) -> dict:
     out = {}
-    suite = tuple(r for r in rooms if r not in DEV_ROOMS)
-    for part, names in (("held_out", HELD_OUT), ("tuned_on", TUNE_ROOMS), ("dev", DEV_ROOMS), ("all", suite)):
+    for part, names in _groups(rooms):
         names = [r for r in names if r in rooms]
         if not names:
             continue
@@ -355,8 +361,8 @@ def seeds_summary(per_seed: dict[int, dict], variant: str = "fit") -> dict:
                     "mean": round(float(np.mean(psnr)), 2), "spread": round(float(np.ptp(psnr)), 2),
                     "render": got[0].get("render")}
     groups = {}
-    suite = tuple(r for r in names if r not in DEV_ROOMS)
-    for part, members in (("tuned_on", TUNE_ROOMS), ("held_out", HELD_OUT), ("dev", DEV_ROOMS), ("all", suite)):
+    parts = dict(_groups(names))
+    for part, members in parts.items():
         members = [r for r in members if r in rooms]
         if not members:
             continue
@@ -367,7 +373,8 @@ def seeds_summary(per_seed: dict[int, dict], variant: str = "fit") -> dict:
                     f"light fit's points and samples and the tracer's samples; seed {seeds[0]}: every variant, the "
                     "main JSON); each room's 'render' names the suite's render (render_fingerprint)"),
            "seeds": seeds, "code": _code_version(), "rooms": rooms, "groups": groups,
-           "within_10pct_rooms_per_seed": [sum(rooms[r]["within_10pct"][i] for r in suite) for i in range(len(seeds))]}
+           "within_10pct_rooms_per_seed": [sum(rooms[r]["within_10pct"][i] for r in parts["all"])
+                                           for i in range(len(seeds))]}
     dev = [r for r in rooms if r in DEV_ROOMS]
     if dev:
         out["within_10pct_dev_rooms_per_seed"] = [sum(rooms[r]["within_10pct"][i] for r in dev)
@@ -466,13 +473,12 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--seeds {a.seeds!r} runs the fit variant at the seeds after the first: add fit to --variants")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s", stream=sys.stdout)
     suite = Path(a.suite)
-    rooms = [r.strip() for r in (a.rooms.split(",") if a.rooms else ROOMS) if r.strip()]
+    rooms = room_list(a.rooms)
     unknown = [r for r in rooms if r not in ROOMS + DEV_ROOMS]
     if unknown:
         p.error(f"--rooms: unknown room(s) {', '.join(unknown)}; choose from {', '.join(ROOMS + DEV_ROOMS)}")
-    if not a.out and set(rooms) & set(DEV_ROOMS):
-        p.error(f"--rooms {a.rooms}: {', '.join(sorted(set(rooms) & set(DEV_ROOMS)))} is for tuning only and stays out "
-                f"of the headline results in {RESULTS}: give --out, e.g. --out /tmp/dev/lighting")
+    if why := tuning_rooms_need_out(rooms, a.out, "/tmp/dev/lighting"):
+        p.error(f"--rooms {a.rooms}: {why}")
     a.out = a.out or str(RESULTS / "lighting")
     missing = [r for r in rooms if not (suite / r / "done.json").is_file()]
     if missing:

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.lighting import SUITE, WORK
-from bench.lightsuite import DEV_ROOMS, MAX_DEPTH
+from bench.lightsuite import MAX_DEPTH, room_list, tuning_rooms_need_out
 
 log = logging.getLogger("bench.lightprobe")
 
@@ -316,12 +316,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rays", type=int, default=RAYS)
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    rooms = [r.strip() for r in a.rooms.split(",") if r.strip()]
+    rooms = room_list(a.rooms, ())
     variants = [v for v in a.variants.split(",") if v]
-    dev = sorted(set(rooms) & set(DEV_ROOMS))
-    if not a.out and dev:
-        p.error(f"--rooms {a.rooms}: {', '.join(dev)} is for tuning only and stays out of the results in {RESULTS}: "
-                f"give --out, e.g. --out /tmp/dev/lightprobe")
+    if why := tuning_rooms_need_out(rooms, a.out, "/tmp/dev/lightprobe"):
+        p.error(f"--rooms {a.rooms}: {why}")
     a.out = a.out or str(RESULTS / "lightprobe")
     missing = [f"{r}/{v}" for r in rooms for v in variants
                if not (Path(a.work) / r / v).is_dir() or not (Path(a.suite) / r).is_dir()]

@@ -117,6 +117,7 @@ ROOMS = ("ceiling", "lamp_in_view", "window", "spot", "coloured_walls", "dim")
 # rooms for tuning only, never in the headline: the tuned half of ROOMS has no room whose walls are strongly
 # coloured, so nothing tuned on it could be checked on the albedo / illumination ambiguity but on a held-out room
 DEV_ROOMS = ("coloured_dev",)
+
 OBJ_IDS = (1, 5, 9)            # ape (brown), watering can (white/grey), duck (yellow)
 WIDTH, HEIGHT = 640, 480
 FX = FY = 525.0                # at 640x480; scaled with the width for smaller images
@@ -217,6 +218,21 @@ def _panel(name, centre, u, v, radiance, note="") -> Emitter:
     return Emitter(name, corners, n / np.linalg.norm(n), np.asarray(radiance, float), note)
 
 
+def room_list(text: str, default=ROOMS) -> list[str]:
+    """The rooms of a ``--rooms a, b`` option (``default`` when empty); spaces around the names dropped."""
+    return [r.strip() for r in (text.split(",") if text else default) if r.strip()]
+
+
+def tuning_rooms_need_out(rooms, out, example: str) -> str | None:
+    """Why a run on ``rooms`` may not write to the default results (``out`` empty): the tuning-only rooms
+    (:data:`DEV_ROOMS`) stay out of the headline; ``example`` an --out to suggest. None when it may."""
+    dev = sorted(set(rooms) & set(DEV_ROOMS))
+    if out or not dev:
+        return None
+    return (f"{', '.join(dev)} is for tuning only and stays out of the headline results: give --out, e.g. "
+            f"--out {example}")
+
+
 def room_spec(name: str) -> RoomSpec:
     """Geometry, materials and emitters of room ``name`` (one of :data:`ROOMS` or :data:`DEV_ROOMS`)."""
     if name not in ROOMS + DEV_ROOMS:
@@ -269,12 +285,10 @@ def room_spec(name: str) -> RoomSpec:
         emitters = [_panel("spot", (tx, ty, TABLE_HEIGHT + 1.2), 0.1 * ey, 0.1 * ex, 1500.0 * NEUTRAL,
                            "10 cm square light 1.2 m above the table, facing down: hard shadows"),
                     _panel("ceiling_fill", (2.0, 1.5, zc), 1.0 * ey, 1.0 * ex, 1.0 * NEUTRAL, "weak ceiling fill")]
-    elif name == "coloured_dev":
+    elif name in ("coloured_walls", "coloured_dev"):
+        places = [(1.5, 2.0), (2.5, 3.6)] if name == "coloured_walls" else [(1.2, 3.3), (2.9, 1.9)]
         emitters = [_panel(f"ceiling_{i}", (x, y, zc), down_u, down_v, 12.0 * NEUTRAL, "ceiling panel, white")
-                    for i, (x, y) in enumerate([(1.2, 3.3), (2.9, 1.9)])]
-    elif name == "coloured_walls":
-        emitters = [_panel(f"ceiling_{i}", (x, y, zc), down_u, down_v, 12.0 * NEUTRAL, "ceiling panel, white")
-                    for i, (x, y) in enumerate([(1.5, 2.0), (2.5, 3.6)])]
+                    for i, (x, y) in enumerate(places)]
     else:  # dim
         emitters = [_panel("ceiling_small", (2.6, 3.6, zc), 0.3 * ey, 0.3 * ex, 10.0 * WARM, "small warm ceiling lamp")]
         level = LEVEL_DIM
