@@ -302,6 +302,10 @@ class TraceConfig:
                                        "paint; EN 12464-1 recommends 0.7-0.9); it sets how much of the room's light "
                                        "comes back down from above; 0 = the albedo of the upper walls the photos saw",
                                        min=0.0, max=0.95)
+    fit_edge_colour: bool = option(True, "fit lighting: the lights the photos saw clipped (a lamp or a window in view) "
+                                   "take the colour of the unclipped pixels their edges cover in part, over the "
+                                   "surface around them, where at least 30 such pixels show it; false = the "
+                                   "colour the fit finds, which the albedo's colour sets")
     lights_file: str = option("", "fit lighting: JSON file of emitters you know, [{\"corners\": 4 x [x, y, z] world "
                               "metres, \"radiance\": [r, g, b] linear, 1 = sensor white}]; each emits on the side "
                               "its corners turn counter-clockwise around (normal (c1 - c0) x (c2 - c0)); they light the "

@@ -113,6 +113,20 @@ a cabinet is. With the suite's true albedos handed to the fit, its lights come o
 white walls for a white one (the suite's ceiling room, blue 1.3x); the brightest surfaces, not the light, are
 what a room most often keeps near grey.
 
+A light the photos saw clipped (a lamp or a window in view) shows its own colour where it is not clipped: a pixel
+its edge covers in part holds its radiance times that part plus the surface around it for the rest, so the
+excess of such pixels over that surface has the light's colour less the surface's, the light's where it is many
+times brighter (:func:`_clipped_edge_excess`; the suite's lamp in view, about 70x its wall: green / red 0.87 and
+blue / red 0.66, the truth's 0.86 / 0.70; its window 1.19 / 1.41, the truth's 1.18 / 1.39). Where at least
+EDGE_MIN_PIXELS such pixels show it (``edge_colour``), the fit's clipped emitters take that colour at the
+luminance the fit found for them (brighter where a channel would fall under sensor white); the fit's own colour
+for them follows the albedo's (the lamp in view: blue / red 0.60 at run seeds 0-2). The albedo stays the fit's.
+On the suite that moved the lamp room's objects' blue from 0.89 / 0.83 / 0.82 of the truth's to 0.91 / 0.84 /
+0.83 (seeds 0-2) and the window room's from 0.93 / 0.93 / 0.92 to 0.94 / 0.94 / 0.94, each room's objects PSNR
+by -0.12 to +0.12 dB; the other rooms have no clipped pixel. Pulling the albedo levels toward the edges' colour
+instead (as ``white_patch`` does toward grey) over-lit the window room's objects in blue (1.29 at seed 1), and
+both pulls at once brought neither room nearer (lighting_seeds.json, session 29).
+
 Cost (640x480, 8 photos, 16000 points): 10-20 CPU seconds on the light suite; computed once per scan and kept in
 ``RUN/trace/<scene>/lights.npz``.
 """
@@ -167,6 +181,13 @@ SIDE_SHARE = 0.9              # share of the camera rays meeting one side of the
 # sliver the light misses, is no surface to balance on)
 BRIGHT_SHARE = 0.1
 BRIGHT_MIN_SHARE = 0.01
+# the colour of the lights the photos saw clipped, from the unclipped pixels their edges cover in part
+# (edge_colour, :func:`_clipped_edge_excess`)
+EDGE_RING_PX = 1.5            # unclipped pixels this close to a clipped one (their centres) may hold part of it
+EDGE_BACK_PX = (3.5, 7.0)     # pixels this far from every clipped one show the surface around it
+EDGE_WINDOW_PX = 15           # ... averaged over a window this many pixels across
+EDGE_MIN_EXCESS = 0.05        # linear luminance over that surface a pixel needs to count (an 8-bit step: ~0.004)
+EDGE_MIN_PIXELS = 30          # such pixels, over all the photos, that measure the colour
 LIGHT_SHARE = 0.002           # emitters with at least this share of the fitted power are sampled as lights
 # albedo of a ceiling no photo saw: white paint (EN 12464-1 recommends 0.7-0.9 for a ceiling; it is the surface
 # a room most often leaves white)
@@ -210,6 +231,7 @@ class FitSettings:
     white_patch: float = 1.0    # last stage: pull of the brightest surfaces' albedo toward grey (0 = white_prior's)
     ceiling_albedo: float = CEILING_ALBEDO  # the unseen ceiling's albedo, white (0 = the upper walls', as the sides)
     known_complete: bool = False  # the known lights are every light: the fit adds none (trace.lights_complete)
+    edge_colour: bool = True    # the lights the photos saw clipped take the colour of the pixels their edges cover
 
 
 @dataclass(frozen=True)
@@ -548,6 +570,53 @@ def _curve_minimum(x: np.ndarray, y: np.ndarray) -> np.ndarray:
             if a > 0:
                 out[c] = float(np.clip(-b / (2 * a), x0, x2))
     return out
+
+
+def _clipped_edge_excess(photo: np.ndarray, threshold: int) -> np.ndarray:
+    """(m, 3) linear radiance over the surface around them of the unclipped pixels of ``photo (H, W, 3) uint8``
+    next to clipped ones (a channel ``>= threshold``; centres within EDGE_RING_PX), where that excess is at least
+    EDGE_MIN_EXCESS in luminance. The surface is the mean of the pixels EDGE_BACK_PX from every clipped one in an
+    EDGE_WINDOW_PX window. Empty where no pixel (or every pixel) is clipped.
+
+    Why: a pixel that a clipped light's edge covers in part holds the light's radiance times that part plus
+    the surface's for the rest; with the light many times brighter than the surface, the excess has the light's
+    colour, which its clipped pixels no longer show (the light suite's lamp in view: green / red 0.867, blue / red
+    0.654 at its edges, the truth's 0.860 / 0.700; its window 1.19 / 1.41, the truth's 1.18 / 1.39)."""
+    import cv2
+
+    clip = (np.maximum(np.maximum(photo[..., 0], photo[..., 1]), photo[..., 2]) >= threshold).view(np.uint8)
+    if not clip.any() or clip.all():
+        return np.zeros((0, 3))
+    dist = cv2.distanceTransform(1 - clip, cv2.DIST_L2, 3)
+    ring = (dist > 0) & (dist <= EDGE_RING_PX)
+    back = ((dist >= EDGE_BACK_PX[0]) & (dist <= EDGE_BACK_PX[1])).astype(np.float32)
+    lin = srgb_to_linear(np.arange(256, dtype=np.uint8))[photo]      # a table of the 256 codes: the same values
+    size = (EDGE_WINDOW_PX, EDGE_WINDOW_PX)
+    total = cv2.boxFilter(lin * back[..., None], -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    count = cv2.boxFilter(back, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
+    m = ring & (count > 0.5)
+    excess = lin[m].astype(np.float64) - total[m].astype(np.float64) / count[m][:, None]
+    return excess[(excess @ LUMINANCE_F64) > EDGE_MIN_EXCESS]
+
+
+def _edge_colour(excess: np.ndarray) -> np.ndarray | None:
+    """(3,) colour (red 1) of the clipped lights from the edge pixels :func:`_clipped_edge_excess` gives
+    (``excess (m, 3)``): the median green / red and blue / red of those positive in every channel; None with fewer
+    than EDGE_MIN_PIXELS of them."""
+    ex = np.asarray(excess, np.float64).reshape(-1, 3)
+    ex = ex[np.all(ex > 0, axis=1)]
+    if len(ex) < EDGE_MIN_PIXELS:
+        return None
+    return np.array([1.0, float(np.median(ex[:, 1] / ex[:, 0])), float(np.median(ex[:, 2] / ex[:, 0]))])
+
+
+def _edge_coloured(e: np.ndarray, lb: np.ndarray, colour: np.ndarray) -> np.ndarray:
+    """Emission ``e (k, 3)`` of lights seen clipped, in ``colour (3,)`` (positive) at its luminance, or brighter
+    where that leaves a channel under its lower bound ``lb (k, 3)`` (clipped: at least sensor white there)."""
+    c = np.asarray(colour, np.float64)
+    scale = np.maximum((np.asarray(e, np.float64) @ LUMINANCE_F64) / float(c @ LUMINANCE_F64),
+                       np.max(np.asarray(lb, np.float64) / c[None], axis=1))
+    return scale[:, None] * c[None]
 
 
 def _white_levels(res: np.ndarray, power: np.ndarray, prior: float, fine: int = 400) -> np.ndarray:
@@ -1221,9 +1290,12 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     obs_p, obs_n, obs_L = [], [], []
     exposures = []
     sides = np.zeros(2, np.int64)     # camera rays that met a mesh triangle's front / back
+    edge_excess = []                  # per photo, its clipped lights' edge pixels (_clipped_edge_excess)
     for (photo, _, _), cam in zip(frames, cameras):
         photo = np.asarray(photo, np.uint8)
         h, w = photo.shape[:2]
+        if st.edge_colour:
+            edge_excess.append(_clipped_edge_excess(photo, st.threshold))
         ys, xs = np.mgrid[st.stride // 2:h:st.stride, st.stride // 2:w:st.stride]
         pix = (ys * w + xs).ravel()
         o, d = cam.rays(pix, np.full((pix.size, 2), 0.5, np.float32))
@@ -1271,6 +1343,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             np.add.at(box_n, cell[~clip[on_box]], 1)
             np.add.at(box_clip, cell[clip[on_box]], 1)
 
+    edge_colour = _edge_colour(np.concatenate(edge_excess)) if edge_excess else None
     if mesh_rad is None:   # no colours: each vertex gets the mean of the photo pixels that saw it
         mesh_rad = np.zeros((nv, 3))
         have = vn > 0
@@ -1280,6 +1353,9 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     summary: dict = {"frames": len(frames), "exposure": [round(e, 4) for e in exposures],
                      "box_cells": int(nb), "mesh_triangles": int(nt), "known_lights": len(kq),
                      "camera_sides": sides.tolist()}
+    if edge_excess:
+        summary["clipped_edge_pixels"] = int(sum(len(x) for x in edge_excess))
+        summary["clipped_edge_colour"] = None if edge_colour is None else _finite(edge_colour)
     # the side of the mesh's triangles the cameras see (+1 front, -1 back, 0 either): a scan is a shell
     # seen from inside, and a table top or a shelf is one sheet with no underside. A ray from the floor
     # below that meets the sheet's unseen side must not take the lit top's colour (the gathers below)
@@ -1589,14 +1665,18 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         return Mc, Ae, Ekc
 
     def fit_at(level: np.ndarray, iters: int = 4, active: np.ndarray = active, sparsity: float = st.sparsity,
-               rows: np.ndarray | None = None, on=None) -> tuple[tuple, np.ndarray, np.ndarray]:
+               rows: np.ndarray | None = None, on=None, final: bool = False) -> tuple[tuple, np.ndarray, np.ndarray]:
         """Emission of the unknowns ``active`` (the others stay at their lower bound) and albedo at each
         channel's albedo level ``level (3,)``; returns (emission, unknowns' radiance, irradiance at the
-        points ``rows``), the patch albedo and each channel's objective."""
+        points ``rows``), the patch albedo and each channel's objective. ``final``: the fit's answer (the lights
+        seen clipped take their edges' colour, where the photos show it)."""
         Mc, Ae, Ekc = design(level, active, np.setdiff1d(np.arange(K), active), rows=rows)
         ea, rho, E, obj = alternate(level, Ekc, Ae, lb[active], lam_k[active], sparsity, iters, rows=rows, on=on)
         e = lb.copy()
         e[active] = ea
+        if final and edge_colour is not None:
+            seen = np.flatnonzero(lb.max(axis=1) > 0)
+            e[seen] = _edge_coloured(e[seen], lb[seen], edge_colour)
         ua = unseen(level)
         Lu = np.stack([Mc[c] @ (e[:, c] + rho_u(ua[c]) * Eu[:, c]) for c in range(3)], axis=1)
         return (e, Lu, E), rho, obj
@@ -1804,6 +1884,11 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             level = _white_levels(res3, power3, st.white_prior)
         Mc, Ekc, cols = problem(level, Gk, Akeep)
         ej, rho3, E3, obj3 = alternate(level, Ekc, cols, lbk, lamk, 0.0, 5, on=pool)
+        if edge_colour is not None:
+            # the colour of a light seen clipped is the photos' own where its edges show it; the fit's comes from
+            # the albedo's colour, which the photos barely tell (the suite's lamp in view: blue / red 0.60, the
+            # edges' 0.65, the truth's 0.70). Its luminance stays the fit's
+            ej[:nr] = _edge_coloured(ej[:nr], lbk[:nr], edge_colour)
         e3 = lb.copy()
         e3[regions] = ej[:nr]
         el = ej[nr:]
@@ -1879,7 +1964,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                 best_level = np.asarray(ALBEDO_LEVELS)[np.argmin(res2, axis=0)]
                 if st.refine <= 0 and st.white_prior > 0:   # stage 2 is the last: the light's colour prior
                     best_level = _white_levels(res2, power2, st.white_prior)
-                (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0, on=pool)
+                (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0, on=pool, final=True)
                 summary["stage1_level"] = [float(x) for x in level1]
                 summary["level_residuals_rgb"] = [_finite(r) for r in (res2 / res2.min(axis=0)).T]
                 summary["support_cells"] = int(sup.size)
@@ -1891,9 +1976,10 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                     e, Lu, E, rho, lamp_q, lamp_n, lamp_e, best_level, res_curve, _ = lamps
                 elif st.refine > 0 and st.white_prior > 0:   # stage 3 found no lamps: stage 2 is the last
                     best_level = _white_levels(res2, power2, st.white_prior)
-                    (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0, on=pool)
+                    (e, Lu, E), rho, obj2 = fit_at(best_level, iters=5, active=sup, sparsity=0.0, on=pool,
+                                                   final=True)
         if len(E) < n:   # no second stage: stage 1's answer, fitted to all the points
-            (e, Lu, E), rho, _ = fit_at(level1, iters=3, on=pool)
+            (e, Lu, E), rho, _ = fit_at(level1, iters=3, on=pool, final=True)
         best_level = [float(x) for x in best_level]
         res_curve = res_curve @ LUMINANCE_F64
         note = ""

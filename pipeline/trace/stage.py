@@ -220,6 +220,7 @@ def fit_settings(cfg: TraceConfig, width: int):
                        threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale,
                        shared_colour=cfg.fit_light_colour == "shared", white_prior=cfg.fit_white_prior,
                        white_patch=cfg.fit_white_patch, ceiling_albedo=cfg.fit_ceiling_albedo,
+                       edge_colour=cfg.fit_edge_colour,
                        known_complete=cfg.lights_complete)
 
 

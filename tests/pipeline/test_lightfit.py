@@ -1255,3 +1255,96 @@ def test_coordinate_search_walks_to_the_minimum_and_keeps_to_bounds():
     assert n == 7 == len(seen)
     _, _, n = _coordinate_search(lambda x: 1.0, np.zeros(2), steps, lo, hi, lambda x: True, 200)
     assert n == 5                                  # x0, then each step of one sweep: nothing changed
+
+
+def supersampled_photos(v, f, tri_radiance: np.ndarray, fr, width: int, height: int, ss: int = 4) -> list:
+    """Per frame of ``fr`` (its intrinsics for ``width x height`` photos), an 8-bit sRGB photo of the linear
+    radiance ``tri_radiance (T, 3)`` of each triangle, every pixel the mean of ``ss x ss`` rays (a light's edge
+    covers its pixels in part), clipped at sensor white."""
+    from pipeline.camera import Camera
+    from pipeline.trace.intersect import EmbreeIntersector
+
+    isect = EmbreeIntersector(np.asarray(v, np.float32), np.asarray(f, np.int32))
+    out = []
+    n = width * height
+    for _, Kf, T in fr:
+        cam = Camera(K=Kf, T_c2w=T, width=width, height=height)
+        lin = np.zeros((n, 3))
+        for j in range(ss * ss):
+            jit = np.tile([[(j % ss + 0.5) / ss, (j // ss + 0.5) / ss]], (n, 1)).astype(np.float32)
+            hit = isect.intersect(*cam.rays(np.arange(n), jit))
+            lin += np.where(hit.hit[:, None], tri_radiance[np.maximum(hit.prim, 0)], 0.0) / (ss * ss)
+        c = np.clip(lin, 0, 1)
+        srgb = np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
+        out.append((np.clip(np.round(255 * srgb), 0, 255).astype(np.uint8).reshape(height, width, 3), Kf, T))
+    return out
+
+
+def test_a_clipped_lights_colour_is_read_at_its_edges():
+    """The pixels a clipped light's edge covers in part hold its radiance times that part plus the surface around
+    it for the rest: their excess over that surface has the colour of the light less the surface's, the light's
+    where it is many times brighter (here 40x; green / red 0.7, blue / red 0.4 over a wall of another colour with
+    a gradient), which the clipped pixels no longer show; the edge pixels' own colour is far less saturated. No
+    clipped pixel, every pixel clipped, a clipped dot: no colour."""
+    from pipeline.trace.lightfit import _clipped_edge_excess, _edge_colour
+
+    ss, h, w = 8, 240, 320
+    yy, xx = (np.mgrid[0:h * ss, 0:w * ss] + 0.5) / ss
+    c, s = np.cos(0.3), np.sin(0.3)                               # a rotated rectangle: every share of a pixel
+    u, t = c * (xx - 161.3) + s * (yy - 119.7), -s * (xx - 161.3) + c * (yy - 119.7)
+    cover = ((np.abs(u) < 100.0) & (np.abs(t) < 60.0)).reshape(h, ss, w, ss).mean(axis=(1, 3))[..., None]
+    wall = np.array([0.3, 0.25, 0.2]) * (0.7 + 0.6 * np.arange(w) / w)[None, :, None]
+    lamp = np.array([12.0, 8.4, 4.8])
+    lin = np.clip(cover * lamp + (1 - cover) * wall, 0, 1)
+    img = np.clip(np.round(255 * np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)), 0,
+                  255).astype(np.uint8)
+    ex = _clipped_edge_excess(img, 250)
+    col = _edge_colour(ex)
+    assert col is not None and len(ex) >= 30
+    np.testing.assert_allclose(col, [1.0, 0.7, 0.4], rtol=0.04)
+    own = lin[(cover[..., 0] > 0) & (img.max(axis=2) < 250)]        # the same pixels, the surface left in
+    assert np.median(own[:, 2] / own[:, 0]) > 0.5
+    assert len(_clipped_edge_excess(np.full((h, w, 3), 120, np.uint8), 250)) == 0
+    assert len(_clipped_edge_excess(np.full((h, w, 3), 255, np.uint8), 250)) == 0
+    dot = np.full((h, w, 3), 60, np.uint8)
+    dot[60, 80] = 255
+    assert _edge_colour(_clipped_edge_excess(dot, 250)) is None
+
+
+def test_a_lamp_in_view_takes_its_edges_colour():
+    """A warm lamp on a grey wall, clipped in the photos: the fit's clipped emitters take the colour its edges
+    show, at the luminance the fit finds (the edges' colour is the lamp's less the wall's: the lamp is only 10x
+    the wall here); without it (fit_edge_colour off) the fit gives them what the grey room says, far from it."""
+    v, f, colors = open_room()
+    c = v[f].mean(axis=1)
+    patch_t = (c[:, 0] > 1.99) & (np.abs(c[:, 1]) < 0.7) & (c[:, 2] > 0.8) & (c[:, 2] < 1.7)
+    assert patch_t.sum() >= 2
+    colors = colors.copy()
+    colors[np.unique(f[patch_t])] = 255
+    tri = np.tile(srgb_to_linear(np.array([150], np.uint8)).astype(np.float64), (len(f), 3))
+    tri[patch_t] = [3.0, 2.1, 1.2]
+    big = K * [[3], [3], [1]] + [[0, 0, 1], [0, 0, 1], [0, 0, 0]]    # 192 x 144 photos, the same view
+    fr = [(None, big, look_at((-1.0, 0.8 * a, 1.3), (2.0, 0.0, 1.25))) for a in (-1.0, -0.5, 0.0, 0.5, 1.0)]
+    fr = supersampled_photos(v, f, tri, fr, 3 * W, 3 * H, ss=6)
+    assert all((img == 255).any() for img, _, _ in fr)
+
+    def fit(edge):
+        rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(0),
+                             settings=FitSettings(points=400, stride=6, edge_colour=edge))
+        check_finite(rl)
+        clipped = [e for e in rl.summary["emitters"] if e["kind"] == "clipped region"]
+        assert clipped, rl.summary["emitters"]
+        return rl, clipped
+
+    on, clipped_on = fit(True)
+    assert on.summary["clipped_edge_pixels"] >= 30
+    edge = np.asarray(on.summary["clipped_edge_colour"], np.float64)
+    lamp_less_wall = np.array([3.0, 2.1, 1.2]) - tri[0]
+    np.testing.assert_allclose(edge, lamp_less_wall / lamp_less_wall[0], rtol=0.05)
+    for e in clipped_on:
+        r = np.asarray(e["radiance"], np.float64)
+        np.testing.assert_allclose(r / r[0], edge, rtol=0.01)
+    off, clipped_off = fit(False)
+    assert "clipped_edge_colour" not in off.summary
+    r = np.asarray(clipped_off[0]["radiance"], np.float64)
+    assert r[2] / r[0] > 0.6, clipped_off[0]
