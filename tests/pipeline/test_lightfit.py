@@ -10,7 +10,7 @@ import logging
 import numpy as np
 import pytest
 
-from pipeline.color import srgb_to_linear
+from pipeline.color import encode_u8, srgb_to_linear
 from pipeline.trace.lightfit import FitSettings, RoomLights, closing_box, fit_room_lights
 from tests.pipeline.shapes import box_room, look_at, parallel_rectangle_factor
 
@@ -1274,9 +1274,7 @@ def supersampled_photos(v, f, tri_radiance: np.ndarray, fr, width: int, height: 
             jit = np.tile([[(j % ss + 0.5) / ss, (j // ss + 0.5) / ss]], (n, 1)).astype(np.float32)
             hit = isect.intersect(*cam.rays(np.arange(n), jit))
             lin += np.where(hit.hit[:, None], tri_radiance[np.maximum(hit.prim, 0)], 0.0) / (ss * ss)
-        c = np.clip(lin, 0, 1)
-        srgb = np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1 / 2.4) - 0.055)
-        out.append((np.clip(np.round(255 * srgb), 0, 255).astype(np.uint8).reshape(height, width, 3), Kf, T))
+        out.append((encode_u8(lin).reshape(height, width, 3), Kf, T))
     return out
 
 
@@ -1296,8 +1294,7 @@ def test_a_clipped_lights_colour_is_read_at_its_edges():
     wall = np.array([0.3, 0.25, 0.2]) * (0.7 + 0.6 * np.arange(w) / w)[None, :, None]
     lamp = np.array([12.0, 8.4, 4.8])
     lin = np.clip(cover * lamp + (1 - cover) * wall, 0, 1)
-    img = np.clip(np.round(255 * np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)), 0,
-                  255).astype(np.uint8)
+    img = encode_u8(lin)
     ex = _clipped_edge_excess(img, 250)
     col = _edge_colour(ex)
     assert col is not None and len(ex) >= 30
