@@ -188,6 +188,7 @@ EDGE_BACK_PX = (3.5, 7.0)     # pixels this far from every clipped one show the 
 EDGE_WINDOW_PX = 15           # ... averaged over a window this many pixels across
 EDGE_MIN_EXCESS = 0.05        # linear luminance over that surface a pixel needs to count (an 8-bit step: ~0.004)
 EDGE_MIN_PIXELS = 30          # such pixels, over all the photos, that measure the colour
+EDGE_RAISE_WARN = 1.5         # the edges' colour raising a clipped light's brightness more than this is said
 LIGHT_SHARE = 0.002           # emitters with at least this share of the fitted power are sampled as lights
 # albedo of a ceiling no photo saw: white paint (EN 12464-1 recommends 0.7-0.9 for a ceiling; it is the surface
 # a room most often leaves white)
@@ -580,8 +581,8 @@ def _clipped_edge_excess(photo: np.ndarray, threshold: int) -> np.ndarray:
 
     Why: a pixel that a clipped light's edge covers in part holds the light's radiance times that part plus
     the surface's for the rest; with the light many times brighter than the surface, the excess has the light's
-    colour, which its clipped pixels no longer show (the light suite's lamp in view: green / red 0.867, blue / red
-    0.654 at its edges, the truth's 0.860 / 0.700; its window 1.19 / 1.41, the truth's 1.18 / 1.39)."""
+    colour, which its clipped pixels no longer show (the light suite's lamp in view: green / red 0.874, blue / red
+    0.657 at its edges, the truth's 0.860 / 0.700; its window 1.19 / 1.41, the truth's 1.18 / 1.39)."""
     import cv2
 
     clip = (np.maximum(np.maximum(photo[..., 0], photo[..., 1]), photo[..., 2]) >= threshold).view(np.uint8)
@@ -610,13 +611,15 @@ def _edge_colour(excess: np.ndarray) -> np.ndarray | None:
     return np.array([1.0, float(np.median(ex[:, 1] / ex[:, 0])), float(np.median(ex[:, 2] / ex[:, 0]))])
 
 
-def _edge_coloured(e: np.ndarray, lb: np.ndarray, colour: np.ndarray) -> np.ndarray:
+def _edge_coloured(e: np.ndarray, lb: np.ndarray, colour: np.ndarray) -> tuple[np.ndarray, float]:
     """Emission ``e (k, 3)`` of lights seen clipped, in ``colour (3,)`` (positive) at its luminance, or brighter
-    where that leaves a channel under its lower bound ``lb (k, 3)`` (clipped: at least sensor white there)."""
+    where that leaves a channel under its lower bound ``lb (k, 3)`` (clipped: at least sensor white there), and
+    the most any light's luminance was raised for that (1: none)."""
     c = np.asarray(colour, np.float64)
-    scale = np.maximum((np.asarray(e, np.float64) @ LUMINANCE_F64) / float(c @ LUMINANCE_F64),
-                       np.max(np.asarray(lb, np.float64) / c[None], axis=1))
-    return scale[:, None] * c[None]
+    keep = (np.asarray(e, np.float64) @ LUMINANCE_F64) / float(c @ LUMINANCE_F64)
+    scale = np.maximum(keep, np.max(np.asarray(lb, np.float64) / c[None], axis=1))
+    raised = scale[keep > 0] / keep[keep > 0]
+    return scale[:, None] * c[None], float(raised.max()) if raised.size else 1.0
 
 
 def _white_levels(res: np.ndarray, power: np.ndarray, prior: float, fine: int = 400) -> np.ndarray:
@@ -1344,6 +1347,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             np.add.at(box_clip, cell[clip[on_box]], 1)
 
     edge_colour = _edge_colour(np.concatenate(edge_excess)) if edge_excess else None
+    edge_raised = [1.0]               # the most the edges' colour raised a clipped light's luminance (_edge_coloured)
     if mesh_rad is None:   # no colours: each vertex gets the mean of the photo pixels that saw it
         mesh_rad = np.zeros((nv, 3))
         have = vn > 0
@@ -1676,7 +1680,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         e[active] = ea
         if final and edge_colour is not None:
             seen = np.flatnonzero(lb.max(axis=1) > 0)
-            e[seen] = _edge_coloured(e[seen], lb[seen], edge_colour)
+            e[seen], edge_raised[0] = _edge_coloured(e[seen], lb[seen], edge_colour)
         ua = unseen(level)
         Lu = np.stack([Mc[c] @ (e[:, c] + rho_u(ua[c]) * Eu[:, c]) for c in range(3)], axis=1)
         return (e, Lu, E), rho, obj
@@ -1888,7 +1892,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             # the colour of a light seen clipped is the photos' own where its edges show it; the fit's comes from
             # the albedo's colour, which the photos barely tell (the suite's lamp in view: blue / red 0.60, the
             # edges' 0.65, the truth's 0.70). Its luminance stays the fit's
-            ej[:nr] = _edge_coloured(ej[:nr], lbk[:nr], edge_colour)
+            ej[:nr], edge_raised[0] = _edge_coloured(ej[:nr], lbk[:nr], edge_colour)
         e3 = lb.copy()
         e3[regions] = ej[:nr]
         el = ej[nr:]
@@ -1983,6 +1987,16 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         best_level = [float(x) for x in best_level]
         res_curve = res_curve @ LUMINANCE_F64
         note = ""
+    if edge_colour is not None:
+        summary["clipped_edge_raised"] = round(edge_raised[0], 3)
+        if edge_raised[0] > EDGE_RAISE_WARN:
+            # a clipped light's lower bound is sensor white in every channel (the fit's throughout); one clipped in
+            # one channel only, and deeply coloured, would come out this much too bright: said, with the fix
+            log.warning("light fit of %s: the clipped lights take the colour at their edges (green / red %.2f, "
+                        "blue / red %.2f), %.1fx brighter than the fit found so that every channel stays at least "
+                        "sensor white, as in a light clipped in every channel; one clipped in fewer channels comes "
+                        "out too bright: trace.fit_edge_colour = false keeps the fit's colour", name, edge_colour[1],
+                        edge_colour[2], edge_raised[0])
 
     # --- result ------------------------------------------------------------------------------------
     rad = vrad.copy()

@@ -1308,7 +1308,7 @@ def test_a_clipped_lights_colour_is_read_at_its_edges():
     assert _edge_colour(_clipped_edge_excess(dot, 250)) is None
 
 
-def test_a_lamp_in_view_takes_its_edges_colour():
+def test_a_lamp_in_view_takes_its_edges_colour(caplog):
     """A warm lamp on a grey wall, clipped in the photos: the fit's clipped emitters take the colour its edges
     show, at the luminance the fit finds (the edges' colour is the lamp's less the wall's: the lamp is only 10x
     the wall here); without it (fit_edge_colour off) the fit gives them what the grey room says, far from it."""
@@ -1333,7 +1333,8 @@ def test_a_lamp_in_view_takes_its_edges_colour():
         assert clipped, rl.summary["emitters"]
         return rl, clipped
 
-    on, clipped_on = fit(True)
+    with caplog.at_level(logging.WARNING, logger="pipeline.trace.lightfit"):
+        on, clipped_on = fit(True)
     assert on.summary["clipped_edge_pixels"] >= 30
     edge = np.asarray(on.summary["clipped_edge_colour"], np.float64)
     lamp_less_wall = np.array([3.0, 2.1, 1.2]) - tri[0]
@@ -1341,6 +1342,12 @@ def test_a_lamp_in_view_takes_its_edges_colour():
     for e in clipped_on:
         r = np.asarray(e["radiance"], np.float64)
         np.testing.assert_allclose(r / r[0], edge, rtol=0.01)
+    # the fit found the lamp barely over sensor white; in the edges' colour its blue must stay there (it is clipped),
+    # so the lamp comes out brighter, here near its true red of 3.0, and the log says so with the fix
+    assert on.summary["clipped_edge_raised"] > 1.5
+    assert 2.4 < max(e["radiance"][0] for e in clipped_on) < 3.3, clipped_on
+    said = [r.getMessage() for r in caplog.records if "edges" in r.getMessage()]
+    assert len(said) == 1 and "fit_edge_colour = false" in said[0], said
     off, clipped_off = fit(False)
     assert "clipped_edge_colour" not in off.summary
     r = np.asarray(clipped_off[0]["radiance"], np.float64)
