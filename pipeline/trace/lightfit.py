@@ -122,10 +122,11 @@ EDGE_MIN_PIXELS such pixels show it (``edge_colour``), the fit's clipped emitter
 luminance the fit found for them (brighter where a channel would fall under sensor white); the fit's own colour
 for them follows the albedo's (the lamp in view: blue / red 0.60 at run seeds 0-2). The albedo stays the fit's.
 On the suite that moved the lamp room's objects' blue from 0.89 / 0.83 / 0.82 of the truth's to 0.91 / 0.84 /
-0.83 (seeds 0-2) and the window room's from 0.93 / 0.93 / 0.92 to 0.94 / 0.94 / 0.94, each room's objects PSNR
+0.83 (seeds 0-2) and the window room's from 0.93 / 0.93 / 0.92 to 0.94 / 0.94 / 0.95, each room's objects PSNR
 by -0.12 to +0.12 dB; the other rooms have no clipped pixel. Pulling the albedo levels toward the edges' colour
-instead (as ``white_patch`` does toward grey) over-lit the window room's objects in blue (1.29 at seed 1), and
-both pulls at once brought neither room nearer (lighting_seeds.json, session 29).
+instead (as ``white_patch`` does toward grey) over-lit the window room in blue (the light at the objects' places
+1.29x the truth's at seed 1, by the light probe's measure), and both pulls at once brought neither room nearer
+(lighting_seeds.json, session 29).
 
 Cost (640x480, 8 photos, 16000 points): 10-20 CPU seconds on the light suite; computed once per scan and kept in
 ``RUN/trace/<scene>/lights.npz``.
@@ -614,12 +615,25 @@ def _edge_colour(excess: np.ndarray) -> np.ndarray | None:
 def _edge_coloured(e: np.ndarray, lb: np.ndarray, colour: np.ndarray) -> tuple[np.ndarray, float]:
     """Emission ``e (k, 3)`` of lights seen clipped, in ``colour (3,)`` (positive) at its luminance, or brighter
     where that leaves a channel under its lower bound ``lb (k, 3)`` (clipped: at least sensor white there), and
-    the most any light's luminance was raised for that (1: none)."""
+    the most the luminance of a light the fit lit above that bound was raised for it (1: none; a light held at
+    its bound had no luminance of its own to keep)."""
+    e, lb = np.asarray(e, np.float64), np.asarray(lb, np.float64)
     c = np.asarray(colour, np.float64)
-    keep = (np.asarray(e, np.float64) @ LUMINANCE_F64) / float(c @ LUMINANCE_F64)
-    scale = np.maximum(keep, np.max(np.asarray(lb, np.float64) / c[None], axis=1))
-    raised = scale[keep > 0] / keep[keep > 0]
-    return scale[:, None] * c[None], float(raised.max()) if raised.size else 1.0
+    keep = (e @ LUMINANCE_F64) / float(c @ LUMINANCE_F64)
+    scale = np.maximum(keep, np.max(lb / c[None], axis=1))
+    lit = (e @ LUMINANCE_F64) > 1.001 * (lb @ LUMINANCE_F64)
+    return scale[:, None] * c[None], float(np.max(scale[lit] / keep[lit])) if lit.any() else 1.0
+
+
+def _say_edge_raise(name: str, colour: np.ndarray, raised: float) -> None:
+    """One warning where the edges' ``colour`` raised a clipped light's brightness over EDGE_RAISE_WARN times
+    (``raised``): a clipped light's lower bound is sensor white in every channel (the fit's throughout), so one
+    clipped in one channel only, and deeply coloured, would come out that much too bright. Said, with the fix."""
+    if raised > EDGE_RAISE_WARN:
+        log.warning("light fit of %s: the clipped lights take the colour at their edges (green / red %.2f, blue / red "
+                    "%.2f), %.1fx brighter than the fit found so that every channel stays at least sensor white, as "
+                    "in a light clipped in every channel; one clipped in fewer channels comes out too bright: "
+                    "trace.fit_edge_colour = false keeps the fit's colour", name, colour[1], colour[2], raised)
 
 
 def _white_levels(res: np.ndarray, power: np.ndarray, prior: float, fine: int = 400) -> np.ndarray:
@@ -1347,7 +1361,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             np.add.at(box_clip, cell[clip[on_box]], 1)
 
     edge_colour = _edge_colour(np.concatenate(edge_excess)) if edge_excess else None
-    edge_raised = [1.0]               # the most the edges' colour raised a clipped light's luminance (_edge_coloured)
+    edge_raised = [None]              # the most the edges' colour raised a clipped light's luminance (_edge_coloured)
     if mesh_rad is None:   # no colours: each vertex gets the mean of the photo pixels that saw it
         mesh_rad = np.zeros((nv, 3))
         have = vn > 0
@@ -1358,7 +1372,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                      "box_cells": int(nb), "mesh_triangles": int(nt), "known_lights": len(kq),
                      "camera_sides": sides.tolist()}
     if edge_excess:
-        summary["clipped_edge_pixels"] = int(sum(len(x) for x in edge_excess))
+        summary["clipped_edge_pixels"] = int(sum(np.all(x > 0, axis=1).sum() for x in edge_excess))
         summary["clipped_edge_colour"] = None if edge_colour is None else _finite(edge_colour)
     # the side of the mesh's triangles the cameras see (+1 front, -1 back, 0 either): a scan is a shell
     # seen from inside, and a table top or a shelf is one sheet with no underside. A ray from the floor
@@ -1888,13 +1902,15 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             level = _white_levels(res3, power3, st.white_prior)
         Mc, Ekc, cols = problem(level, Gk, Akeep)
         ej, rho3, E3, obj3 = alternate(level, Ekc, cols, lbk, lamk, 0.0, 5, on=pool)
+        e3 = lb.copy()
+        e3[regions] = ej[:nr]
         if edge_colour is not None:
             # the colour of a light seen clipped is the photos' own where its edges show it; the fit's comes from
             # the albedo's colour, which the photos barely tell (the suite's lamp in view: blue / red 0.60, the
-            # edges' 0.65, the truth's 0.70). Its luminance stays the fit's
-            ej[:nr], edge_raised[0] = _edge_coloured(ej[:nr], lbk[:nr], edge_colour)
-        e3 = lb.copy()
-        e3[regions] = ej[:nr]
+            # edges' 0.66, the truth's 0.70). Its luminance stays the fit's unless a channel would fall under
+            # sensor white. The albedo and the residuals above are the fit's, under its own colour
+            seen = np.flatnonzero(lb.max(axis=1) > 0)
+            e3[seen], edge_raised[0] = _edge_coloured(e3[seen], lb[seen], edge_colour)
         el = ej[nr:]
         ua = unseen(level)
         Lu3 = np.stack([Mc[c] @ (e3[:, c] + rho_u(ua[c]) * (Eu[:, c] + Gk @ el[:, c]))
@@ -1987,16 +2003,9 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         best_level = [float(x) for x in best_level]
         res_curve = res_curve @ LUMINANCE_F64
         note = ""
-    if edge_colour is not None:
+    if edge_raised[0] is not None:      # the clipped lights took the edges' colour (not with every light given)
         summary["clipped_edge_raised"] = round(edge_raised[0], 3)
-        if edge_raised[0] > EDGE_RAISE_WARN:
-            # a clipped light's lower bound is sensor white in every channel (the fit's throughout); one clipped in
-            # one channel only, and deeply coloured, would come out this much too bright: said, with the fix
-            log.warning("light fit of %s: the clipped lights take the colour at their edges (green / red %.2f, "
-                        "blue / red %.2f), %.1fx brighter than the fit found so that every channel stays at least "
-                        "sensor white, as in a light clipped in every channel; one clipped in fewer channels comes "
-                        "out too bright: trace.fit_edge_colour = false keeps the fit's colour", name, edge_colour[1],
-                        edge_colour[2], edge_raised[0])
+        _say_edge_raise(name, edge_colour, edge_raised[0])
 
     # --- result ------------------------------------------------------------------------------------
     rad = vrad.copy()

@@ -1257,23 +1257,64 @@ def test_coordinate_search_walks_to_the_minimum_and_keeps_to_bounds():
     assert n == 5                                  # x0, then each step of one sweep: nothing changed
 
 
-def supersampled_photos(v, f, tri_radiance: np.ndarray, fr, width: int, height: int, ss: int = 4) -> list:
-    """Per frame of ``fr`` (its intrinsics for ``width x height`` photos), an 8-bit sRGB photo of the linear
-    radiance ``tri_radiance (T, 3)`` of each triangle, every pixel the mean of ``ss x ss`` rays (a light's edge
-    covers its pixels in part), clipped at sensor white."""
+def wall_lamp_photos(v, f, lamp_t: np.ndarray, radiance, albedo, fr, width: int, height: int, ss: int = 8):
+    """Per frame of ``fr`` (intrinsics for ``width x height`` photos), an 8-bit sRGB photo of room ``v, f`` lit only
+    by its triangles ``lamp_t`` (a lamp on a wall, seen at ``radiance (3,)``), the rest of albedo ``albedo (3,)``
+    under the lamp's direct light (16 points over its triangles, shadowed; no bounce): an independent stand-in for a
+    renderer. Each pixel is the lamp's radiance times the share of its ``ss x ss`` rays that meet the lamp, plus
+    the surface seen by the rest (a lamp's edge covers its pixels in part), clipped at sensor white."""
     from pipeline.camera import Camera
     from pipeline.trace.intersect import EmbreeIntersector
 
-    isect = EmbreeIntersector(np.asarray(v, np.float32), np.asarray(f, np.int32))
+    v, f = np.asarray(v, np.float64), np.asarray(f)
+    isect = EmbreeIntersector(v.astype(np.float32), f.astype(np.int32))
+    p_ = v[f]
+    tn = np.cross(p_[:, 1] - p_[:, 0], p_[:, 2] - p_[:, 0])
+    area = 0.5 * np.linalg.norm(tn, axis=1)
+    tn /= 2 * area[:, None]
+    lt = np.flatnonzero(lamp_t)
+    rng = np.random.default_rng(5)
+    pick = rng.choice(lt, 16, p=area[lt] / area[lt].sum())
+    r1, r2 = rng.random(16), rng.random(16)
+    q = p_[pick]
+    ls = (1 - np.sqrt(r1))[:, None] * q[:, 0] + (np.sqrt(r1) * (1 - r2))[:, None] * q[:, 1] + \
+        (np.sqrt(r1) * r2)[:, None] * q[:, 2]
+    ln = -tn[pick] if np.mean(tn[lt, 0]) > 0 else tn[pick]     # the lamp faces into the room
+    lamp_area = float(area[lt].sum())
+
+    def shade(x, n):
+        E = np.zeros(len(x))
+        for s_, sn in zip(ls, ln):
+            d = s_ - x
+            dist = np.linalg.norm(d, axis=1)
+            wl = d / dist[:, None]
+            cos_i = np.clip(np.einsum("ij,ij->i", wl, n), 0, None)
+            cos_l = np.clip(-wl @ sn, 0, None)
+            occ = isect.occluded((x + 1e-3 * n).astype(np.float32), wl.astype(np.float32),
+                                 (dist - 5e-3).astype(np.float32))
+            E += lamp_area / 16 * cos_i * cos_l / np.maximum(dist, 0.05) ** 2 * ~occ
+        return E[:, None] * np.asarray(radiance, np.float64)[None] * np.asarray(albedo, np.float64)[None] / np.pi
+
     out = []
     n = width * height
     for _, Kf, T in fr:
         cam = Camera(K=Kf, T_c2w=T, width=width, height=height)
-        lin = np.zeros((n, 3))
+        share = np.zeros(n)
+        at = np.full(n, -1)
+        pos, nrm = np.zeros((n, 3)), np.zeros((n, 3))
         for j in range(ss * ss):
             jit = np.tile([[(j % ss + 0.5) / ss, (j // ss + 0.5) / ss]], (n, 1)).astype(np.float32)
-            hit = isect.intersect(*cam.rays(np.arange(n), jit))
-            lin += np.where(hit.hit[:, None], tri_radiance[np.maximum(hit.prim, 0)], 0.0) / (ss * ss)
+            o, d = cam.rays(np.arange(n), jit)
+            hit = isect.intersect(o, d)
+            on = hit.hit & np.isin(hit.prim, lt)
+            share += on / (ss * ss)
+            new = hit.hit & ~on & (at < 0)
+            at[new] = hit.prim[new]
+            pos[new] = o[new] + hit.t[new, None] * d[new]
+            nrm[new] = tn[hit.prim[new]] * -np.sign(np.einsum("ij,ij->i", tn[hit.prim[new]], d[new]))[:, None]
+        lin = share[:, None] * np.asarray(radiance, np.float64)[None]
+        k = np.flatnonzero(at >= 0)
+        lin[k] += (1 - share[k, None]) * shade(pos[k], nrm[k])
         out.append((encode_u8(lin).reshape(height, width, 3), Kf, T))
     return out
 
@@ -1283,51 +1324,53 @@ def test_a_clipped_lights_colour_is_read_at_its_edges():
     it for the rest: their excess over that surface has the colour of the light less the surface's, the light's
     where it is many times brighter (here 40x; green / red 0.7, blue / red 0.4 over a wall of another colour with
     a gradient), which the clipped pixels no longer show; the edge pixels' own colour is far less saturated. No
-    clipped pixel, every pixel clipped, a clipped dot: no colour."""
+    clipped pixel, every pixel clipped, a lamp a few pixels across: no colour."""
     from pipeline.trace.lightfit import _clipped_edge_excess, _edge_colour
 
     ss, h, w = 8, 240, 320
     yy, xx = (np.mgrid[0:h * ss, 0:w * ss] + 0.5) / ss
     c, s = np.cos(0.3), np.sin(0.3)                               # a rotated rectangle: every share of a pixel
     u, t = c * (xx - 161.3) + s * (yy - 119.7), -s * (xx - 161.3) + c * (yy - 119.7)
-    cover = ((np.abs(u) < 100.0) & (np.abs(t) < 60.0)).reshape(h, ss, w, ss).mean(axis=(1, 3))[..., None]
     wall = np.array([0.3, 0.25, 0.2]) * (0.7 + 0.6 * np.arange(w) / w)[None, :, None]
     lamp = np.array([12.0, 8.4, 4.8])
-    lin = np.clip(cover * lamp + (1 - cover) * wall, 0, 1)
-    img = encode_u8(lin)
-    ex = _clipped_edge_excess(img, 250)
-    col = _edge_colour(ex)
-    assert col is not None and len(ex) >= 30
+
+    def photo(half_u: float, half_t: float) -> tuple[np.ndarray, np.ndarray]:
+        cover = ((np.abs(u) < half_u) & (np.abs(t) < half_t)).reshape(h, ss, w, ss).mean(axis=(1, 3))[..., None]
+        lin = np.clip(cover * lamp + (1 - cover) * wall, 0, 1)
+        return encode_u8(lin), lin
+
+    img, lin = photo(100.0, 60.0)
+    col = _edge_colour(_clipped_edge_excess(img, 250))
+    assert col is not None
     np.testing.assert_allclose(col, [1.0, 0.7, 0.4], rtol=0.04)
-    own = lin[(cover[..., 0] > 0) & (img.max(axis=2) < 250)]        # the same pixels, the surface left in
-    assert np.median(own[:, 2] / own[:, 0]) > 0.5
+    own = lin[(lin.max(axis=2) > wall.max(axis=2) * 1.5) & (img.max(axis=2) < 250)]   # the edge, surface left in
+    assert len(own) >= 30 and np.median(own[:, 2] / own[:, 0]) > 0.5
     assert len(_clipped_edge_excess(np.full((h, w, 3), 120, np.uint8), 250)) == 0
     assert len(_clipped_edge_excess(np.full((h, w, 3), 255, np.uint8), 250)) == 0
-    dot = np.full((h, w, 3), 60, np.uint8)
-    dot[60, 80] = 255
-    assert _edge_colour(_clipped_edge_excess(dot, 250)) is None
+    small = _clipped_edge_excess(photo(3.0, 2.0)[0], 250)           # a small lamp: too few edge pixels to say
+    assert 0 < len(small) < 30 and _edge_colour(small) is None
 
 
 def test_a_lamp_in_view_takes_its_edges_colour(caplog):
-    """A warm lamp on a grey wall, clipped in the photos: the fit's clipped emitters take the colour its edges
-    show, at the luminance the fit finds (the edges' colour is the lamp's less the wall's: the lamp is only 10x
-    the wall here); without it (fit_edge_colour off) the fit gives them what the grey room says, far from it."""
-    v, f, colors = open_room()
+    """A warm lamp on a cream wall lights the room, clipped in the photos: the fit's clipped emitters take the
+    colour its edges show (the lamp's: it is over 20x brighter than the walls around it) at the luminance the fit
+    finds without it; without it (fit_edge_colour off) the fit takes the cream walls' colour for the light's."""
+    v, f, _ = open_room()
     c = v[f].mean(axis=1)
-    patch_t = (c[:, 0] > 1.99) & (np.abs(c[:, 1]) < 0.7) & (c[:, 2] > 0.8) & (c[:, 2] < 1.7)
-    assert patch_t.sum() >= 2
-    colors = colors.copy()
-    colors[np.unique(f[patch_t])] = 255
-    tri = np.tile(srgb_to_linear(np.array([150], np.uint8)).astype(np.float64), (len(f), 3))
-    tri[patch_t] = [3.0, 2.1, 1.2]
+    lamp_t = (c[:, 0] > 1.99) & (np.abs(c[:, 1]) < 0.7) & (c[:, 2] > 0.8) & (c[:, 2] < 1.7)
+    assert lamp_t.sum() >= 2
+    warm, cream = np.array([6.0, 4.2, 2.4]), np.array([0.6, 0.55, 0.42])
     big = K * [[3], [3], [1]] + [[0, 0, 1], [0, 0, 1], [0, 0, 0]]    # 192 x 144 photos, the same view
     fr = [(None, big, look_at((-1.0, 0.8 * a, 1.3), (2.0, 0.0, 1.25))) for a in (-1.0, -0.5, 0.0, 0.5, 1.0)]
-    fr = supersampled_photos(v, f, tri, fr, 3 * W, 3 * H, ss=6)
-    assert all((img == 255).any() for img, _, _ in fr)
+    fr += [(None, big, look_at((1.0, 0.8 * a, 1.3), (-2.0, 0.0, 0.8))) for a in (-1.0, 0.0, 1.0)]
+    fr = wall_lamp_photos(v, f, lamp_t, warm, cream, fr, 3 * W, 3 * H)
+    assert sum((img == 255).any() for img, _, _ in fr) >= 5
+    colors = np.zeros((len(v), 3), np.uint8)              # the scan's colours: what its photos show
+    colors[np.unique(f[lamp_t])] = 255
 
     def fit(edge):
-        rl = fit_room_lights(v, f, colors, fr, up=UP, rng=np.random.default_rng(0),
-                             settings=FitSettings(points=400, stride=6, edge_colour=edge))
+        rl = fit_room_lights(v, f, None, fr, up=UP, rng=np.random.default_rng(0),
+                             settings=FitSettings(points=600, stride=4, edge_colour=edge))
         check_finite(rl)
         clipped = [e for e in rl.summary["emitters"] if e["kind"] == "clipped region"]
         assert clipped, rl.summary["emitters"]
@@ -1335,20 +1378,44 @@ def test_a_lamp_in_view_takes_its_edges_colour(caplog):
 
     with caplog.at_level(logging.WARNING, logger="pipeline.trace.lightfit"):
         on, clipped_on = fit(True)
-    assert on.summary["clipped_edge_pixels"] >= 30
-    edge = np.asarray(on.summary["clipped_edge_colour"], np.float64)
-    lamp_less_wall = np.array([3.0, 2.1, 1.2]) - tri[0]
-    np.testing.assert_allclose(edge, lamp_less_wall / lamp_less_wall[0], rtol=0.05)
-    for e in clipped_on:
-        r = np.asarray(e["radiance"], np.float64)
-        np.testing.assert_allclose(r / r[0], edge, rtol=0.01)
-    # the fit found the lamp barely over sensor white; in the edges' colour its blue must stay there (it is clipped),
-    # so the lamp comes out brighter, here near its true red of 3.0, and the log says so with the fix
-    assert on.summary["clipped_edge_raised"] > 1.5
-    assert 2.4 < max(e["radiance"][0] for e in clipped_on) < 3.3, clipped_on
-    said = [r.getMessage() for r in caplog.records if "edges" in r.getMessage()]
-    assert len(said) == 1 and "fit_edge_colour = false" in said[0], said
     off, clipped_off = fit(False)
-    assert "clipped_edge_colour" not in off.summary
-    r = np.asarray(clipped_off[0]["radiance"], np.float64)
-    assert r[2] / r[0] > 0.6, clipped_off[0]
+    assert on.summary["clipped_edge_pixels"] >= 30
+    np.testing.assert_allclose(on.summary["clipped_edge_colour"], warm / warm[0], rtol=0.03)
+    assert on.summary["clipped_edge_raised"] == 1.0 and not [r for r in caplog.records if "edges" in r.getMessage()]
+    assert "clipped_edge_colour" not in off.summary and "clipped_edge_raised" not in off.summary
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    assert len(clipped_on) == len(clipped_off)
+    for a, b in zip(clipped_on, clipped_off):
+        ra, rb = np.asarray(a["radiance"], np.float64), np.asarray(b["radiance"], np.float64)
+        np.testing.assert_allclose(ra / ra[0], on.summary["clipped_edge_colour"], rtol=0.01)
+        assert abs(ra @ lum / (rb @ lum) - 1) < 0.005, (a, b)          # the fit's luminance, kept
+        # without it the cream walls' colour is taken for the light's: blue / red about 0.4 x 0.42 / 0.6
+        assert rb[2] / rb[0] < 0.34, b
+
+
+def test_edge_colour_keeps_a_lights_luminance_and_sensor_white():
+    """A clipped light fitted above its bound keeps its luminance in the edges' colour; one whose colour would put
+    a channel under sensor white is raised until it does not, by how much said; a light held at its bound (no
+    luminance of its own) takes the colour at sensor white and is not counted. Over 1.5x, one line says so."""
+    from pipeline.trace.lightfit import _edge_coloured, _say_edge_raise
+
+    colour = np.array([1.0, 0.7, 0.4])
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    lb = np.ones((3, 3))
+    e = np.array([[10.0, 8.0, 6.0], [2.0, 1.5, 1.0], [1.0, 1.0, 1.0]])
+    out, raised = _edge_coloured(e, lb, colour)
+    np.testing.assert_allclose(out / out[:, :1], np.tile(colour, (3, 1)), rtol=1e-12)
+    assert abs(out[0] @ lum - e[0] @ lum) < 1e-9                      # kept
+    np.testing.assert_allclose(out[1:, 2], 1.0)                       # blue at sensor white: raised
+    assert abs(raised - 2.5 / ((e[1] @ lum) / (colour @ lum))) < 1e-9 and 1.1 < raised < 1.3
+    assert _edge_coloured(e[2:], lb[2:], colour)[1] == 1.0            # held at its bound: not counted
+    caplog_lines = []
+    handler = logging.Handler()
+    handler.emit = lambda r: caplog_lines.append(r.getMessage())
+    logging.getLogger("pipeline.trace.lightfit").addHandler(handler)
+    try:
+        _say_edge_raise("room", colour, 1.4)
+        _say_edge_raise("room", colour, 2.0)
+    finally:
+        logging.getLogger("pipeline.trace.lightfit").removeHandler(handler)
+    assert len(caplog_lines) == 1 and "2.0x" in caplog_lines[0] and "fit_edge_colour = false" in caplog_lines[0]
