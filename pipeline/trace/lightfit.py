@@ -1474,6 +1474,16 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
             lb[k] = thr_lin
     lb[box_unknown.size:] = thr_lin
 
+    def edge_coloured(e: np.ndarray) -> None:
+        """The fit's answer ``e (K, 3)``, in place: the unknowns the photos saw clipped (a lower bound) take their
+        edges' colour where the photos show it. The colour of a light seen clipped is the photos' own there; the
+        fit's comes from the albedo's colour, which the photos barely tell (the suite's lamp in view: blue / red
+        0.60, the edges' 0.66, the truth's 0.70). Its luminance stays the fit's unless a channel would fall under
+        sensor white; the albedo and the residuals stay the fit's, under its own colour."""
+        if edge_colour is not None:
+            seen = np.flatnonzero(lb.max(axis=1) > 0)
+            e[seen], edge_raised[0] = _edge_coloured(e[seen], lb[seen], edge_colour)
+
     # known irradiance: cosine-weighted rays against mesh + box
     M = st.gather_rays
     pr, hh, dg = _gather(isect, P, N, M, rng, eps, pool)
@@ -1692,9 +1702,8 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         ea, rho, E, obj = alternate(level, Ekc, Ae, lb[active], lam_k[active], sparsity, iters, rows=rows, on=on)
         e = lb.copy()
         e[active] = ea
-        if final and edge_colour is not None:
-            seen = np.flatnonzero(lb.max(axis=1) > 0)
-            e[seen], edge_raised[0] = _edge_coloured(e[seen], lb[seen], edge_colour)
+        if final:
+            edge_coloured(e)
         ua = unseen(level)
         Lu = np.stack([Mc[c] @ (e[:, c] + rho_u(ua[c]) * Eu[:, c]) for c in range(3)], axis=1)
         return (e, Lu, E), rho, obj
@@ -1904,13 +1913,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
         ej, rho3, E3, obj3 = alternate(level, Ekc, cols, lbk, lamk, 0.0, 5, on=pool)
         e3 = lb.copy()
         e3[regions] = ej[:nr]
-        if edge_colour is not None:
-            # the colour of a light seen clipped is the photos' own where its edges show it; the fit's comes from
-            # the albedo's colour, which the photos barely tell (the suite's lamp in view: blue / red 0.60, the
-            # edges' 0.66, the truth's 0.70). Its luminance stays the fit's unless a channel would fall under
-            # sensor white. The albedo and the residuals above are the fit's, under its own colour
-            seen = np.flatnonzero(lb.max(axis=1) > 0)
-            e3[seen], edge_raised[0] = _edge_coloured(e3[seen], lb[seen], edge_colour)
+        edge_coloured(e3)
         el = ej[nr:]
         ua = unseen(level)
         Lu3 = np.stack([Mc[c] @ (e3[:, c] + rho_u(ua[c]) * (Eu[:, c] + Gk @ el[:, c]))
