@@ -24,6 +24,16 @@ LUMINANCE_F64.flags.writeable = False
 LUMINANCE.flags.writeable = False
 
 
+def _srgb_curve(x: np.ndarray) -> np.ndarray:
+    """The sRGB decoding curve on float32 sRGB values in [0, 1]."""
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+# the 256 uint8 codes decoded once: an image is then a table lookup, the same values as the curve per pixel
+_U8_LINEAR = _srgb_curve(np.arange(256, dtype=np.float32) / np.float32(255.0))
+_U8_LINEAR.flags.writeable = False
+
+
 def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     """sRGB colours (uint8 0..255 or float 0..1) to linear float32.
 
@@ -36,8 +46,9 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     (...,) float32 linear values
     """
     x = np.asarray(c)
-    x = x.astype(np.float32) / 255.0 if x.dtype == np.uint8 else x.astype(np.float32)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    if x.dtype == np.uint8:
+        return np.asarray(_U8_LINEAR[x])        # a new array (0-d for a 0-d input), as the curve gives
+    return _srgb_curve(x.astype(np.float32))
 
 
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:

@@ -143,7 +143,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.color import LUMINANCE_F64, exposure_ratio, srgb_to_linear
+from pipeline.color import LUMINANCE_F64, decode_u8, exposure_ratio, srgb_to_linear
 from pipeline.geometry import up_frame
 from pipeline.trace.photolights import EXPOSURE_RANGE, MIN_EXPOSURE_SAMPLES
 
@@ -592,7 +592,7 @@ def _clipped_edge_excess(photo: np.ndarray, threshold: int) -> np.ndarray:
     dist = cv2.distanceTransform(1 - clip, cv2.DIST_L2, 3)
     ring = (dist > 0) & (dist <= EDGE_RING_PX)
     back = ((dist >= EDGE_BACK_PX[0]) & (dist <= EDGE_BACK_PX[1])).astype(np.float32)
-    lin = srgb_to_linear(np.arange(256, dtype=np.uint8))[photo]      # a table of the 256 codes: the same values
+    lin = decode_u8(photo)
     size = (EDGE_WINDOW_PX, EDGE_WINDOW_PX)
     total = cv2.boxFilter(lin * back[..., None], -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
     count = cv2.boxFilter(back, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)

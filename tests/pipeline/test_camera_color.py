@@ -107,6 +107,19 @@ def test_srgb_matches_scikit_image_and_round_trips_every_code():
     assert color.LUMINANCE.dtype == np.float32 and np.array_equal(color.LUMINANCE, color.LUMINANCE_F64.astype(np.float32))
 
 
+def test_uint8_decoding_is_the_float_curve_and_a_fresh_array():
+    """uint8 images decode by a table of the 256 codes: the same float32 values as the curve on code / 255,
+    in an array of the image's shape the caller may write to (the table itself stays untouched)."""
+    img = np.random.default_rng(5).integers(0, 256, (7, 9, 3), dtype=np.uint8)
+    lin = color.decode_u8(img)
+    assert lin.shape == img.shape and lin.dtype == np.float32
+    assert np.array_equal(lin, color.srgb_to_linear(img.astype(np.float32) / np.float32(255.0)))
+    lin[:] = -1.0
+    assert np.array_equal(color.decode_u8(img[:1, :1]), color.srgb_to_linear(img[:1, :1].astype(np.float32) / 255))
+    zero_d = color.srgb_to_linear(np.uint8(255))
+    assert isinstance(zero_d, np.ndarray) and zero_d.shape == () and zero_d == np.float32(1.0)
+
+
 def test_linear_to_srgb_clips_bad_values_and_keeps_precision():
     x = np.array([-1.0, np.nan, np.inf, 2.0, 0.0031308, 0.18], np.float64)
     y = color.linear_to_srgb(x)
