@@ -577,7 +577,7 @@ def _curve_minimum(x: np.ndarray, y: np.ndarray) -> np.ndarray:
 def _clipped_edge_excess(photo: np.ndarray, threshold: int) -> np.ndarray:
     """(m, 3) linear radiance over the surface around them of the unclipped pixels of ``photo (H, W, 3) uint8``
     next to clipped ones (a channel ``>= threshold``; centres within EDGE_RING_PX), where that excess is at least
-    EDGE_MIN_EXCESS in luminance. The surface is the mean of the pixels EDGE_BACK_PX from every clipped one in an
+    EDGE_MIN_EXCESS in luminance and positive in every channel (its colour has a ratio). The surface is the mean of the pixels EDGE_BACK_PX from every clipped one in an
     EDGE_WINDOW_PX window. Empty where no pixel (or every pixel) is clipped.
 
     Why: a pixel that a clipped light's edge covers in part holds the light's radiance times that part plus
@@ -598,15 +598,13 @@ def _clipped_edge_excess(photo: np.ndarray, threshold: int) -> np.ndarray:
     count = cv2.boxFilter(back, -1, size, normalize=False, borderType=cv2.BORDER_CONSTANT)
     m = ring & (count > 0.5)
     excess = lin[m].astype(np.float64) - total[m].astype(np.float64) / count[m][:, None]
-    return excess[(excess @ LUMINANCE_F64) > EDGE_MIN_EXCESS]
+    return excess[((excess @ LUMINANCE_F64) > EDGE_MIN_EXCESS) & np.all(excess > 0, axis=1)]
 
 
 def _edge_colour(excess: np.ndarray) -> np.ndarray | None:
     """(3,) colour (red 1) of the clipped lights from the edge pixels :func:`_clipped_edge_excess` gives
-    (``excess (m, 3)``): the median green / red and blue / red of those positive in every channel; None with fewer
-    than EDGE_MIN_PIXELS of them."""
+    (``excess (m, 3)``, positive): their median green / red and blue / red; None with fewer than EDGE_MIN_PIXELS."""
     ex = np.asarray(excess, np.float64).reshape(-1, 3)
-    ex = ex[np.all(ex > 0, axis=1)]
     if len(ex) < EDGE_MIN_PIXELS:
         return None
     return np.array([1.0, float(np.median(ex[:, 1] / ex[:, 0])), float(np.median(ex[:, 2] / ex[:, 0]))])
@@ -1372,7 +1370,7 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
                      "box_cells": int(nb), "mesh_triangles": int(nt), "known_lights": len(kq),
                      "camera_sides": sides.tolist()}
     if edge_excess:
-        summary["clipped_edge_pixels"] = int(sum(np.all(x > 0, axis=1).sum() for x in edge_excess))
+        summary["clipped_edge_pixels"] = int(sum(len(x) for x in edge_excess))
         summary["clipped_edge_colour"] = None if edge_colour is None else _finite(edge_colour)
     # the side of the mesh's triangles the cameras see (+1 front, -1 back, 0 either): a scan is a shell
     # seen from inside, and a table top or a shelf is one sheet with no underside. A ray from the floor
