@@ -1306,10 +1306,12 @@ def _fit_room_lights(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray
     exposures = []
     sides = np.zeros(2, np.int64)     # camera rays that met a mesh triangle's front / back
     edge_excess = []                  # per photo, its clipped lights' edge pixels (_clipped_edge_excess)
+    # (not read where the lights handed in are every light: the fit then colours no light of its own)
+    read_edges = st.edge_colour and not (kq and st.known_complete)
     for (photo, _, _), cam in zip(frames, cameras):
         photo = np.asarray(photo, np.uint8)
         h, w = photo.shape[:2]
-        if st.edge_colour:
+        if read_edges:
             edge_excess.append(_clipped_edge_excess(photo, st.threshold))
         ys, xs = np.mgrid[st.stride // 2:h:st.stride, st.stride // 2:w:st.stride]
         pix = (ys * w + xs).ravel()
