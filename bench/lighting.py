@@ -4,11 +4,11 @@ against the true images of the same rooms with the objects in them (issue: room 
 Run: ``nice .venv/bin/python -m bench.lighting [--suite bench/cache/lightsuite] [--rooms a,b]
 [--variants fit,scan] [--seeds 0,1,2]``. Builds the suite first when it is missing (:mod:`bench.lightsuite`,
 cached; about 50 min), then writes bench/results/lighting.json and lighting.png. With ``--seeds``, the fit variant
-runs again at each seed after the first, and lighting_seeds.json gets its figures per seed (:func:`seeds_summary`:
-the README's figures over run seeds and the rooms within the brightness target per seed; the file's other keys,
-what earlier sessions measured and tried, are kept). The seed draws the fit's points, and which points moves the
-fit's albedo level, and with it the objects' brightness, by 5-10 % in some rooms (lighting_seeds.json,
-``session23_diagnostics``): one seed's figures are one draw.
+runs again at each seed after the first, and lighting_seeds.json is rewritten with its figures per seed
+(:func:`seeds_summary`: the headline figures over run seeds and the rooms within the brightness target per seed;
+:func:`write_seeds` keeps nothing of the file's earlier content). The seed draws the fit's points, and which
+points moves the fit's albedo level, and with it the objects' brightness, by 5-10 % in some rooms: one seed's
+figures are one draw.
 
 For each room of the suite (its ``scan/`` folder is a 7-Scenes scan of the room WITHOUT objects, photos
 rendered by Mitsuba), the real CLI runs every stage up to raster once (``scansynth run --poses``, the
@@ -395,11 +395,13 @@ def _code_version() -> str | None:
     return head + ("+" if dirty else "")
 
 
-def merge_into(path: Path, block: dict) -> None:
-    """Write ``block``'s keys first into the JSON object at ``path``, then every other key there in its order
-    (the earlier sessions' figures in lighting_seeds.json); a new file if there is none."""
-    old = json.loads(path.read_text()) if path.is_file() else {}
-    path.write_text(json.dumps({**block, **{k: v for k, v in old.items() if k not in block}}, indent=1))
+def write_seeds(path: Path, block: dict) -> None:
+    """Write ``block`` (:func:`seeds_summary`'s figures) as the whole JSON object at ``path``.
+
+    The file holds the figures of the run that wrote it and nothing else: whatever it held before, figures of
+    other code or of other renders of the suite included, is replaced, so every figure in it was measured
+    together on one code version and one render."""
+    path.write_text(json.dumps(block, indent=1))
 
 
 def chart(rooms: dict, summary: dict, variants, path: Path) -> None:
@@ -459,8 +461,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reuse", action="store_true", help="keep variants already run in --work with the same settings")
     p.add_argument("--set", action="append", default=[], help="extra TABLE.KEY=VALUE for the fit variant (tuning)")
     p.add_argument("--seeds", default="0", help="run seeds, comma-separated: the first runs every variant (OUT.json), "
-                   "the others the fit variant again; with more than one, OUT_seeds.json gets the fit's figures per "
-                   "seed (its other keys, earlier sessions' figures, are kept)")
+                   "the others the fit variant again; with more than one, OUT_seeds.json is rewritten with the fit's "
+                   "figures per seed")
     a = p.parse_args(argv)
     try:
         seeds = [int(x) for x in a.seeds.split(",") if x.strip()]
@@ -503,7 +505,7 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps(summary, indent=1))
     if len(per_seed) > 1:
         block = seeds_summary(per_seed)
-        merge_into(out.with_name(out.stem + "_seeds.json"), block)
+        write_seeds(out.with_name(out.stem + "_seeds.json"), block)
         dev = block.get("within_10pct_dev_rooms_per_seed")
         print("within 10 % per seed:", block["within_10pct_rooms_per_seed"],
               f"(tuning rooms: {dev})" if dev is not None else "", json.dumps(block["groups"]))

@@ -71,9 +71,9 @@ Not bit-reproducible: Mitsuba's multi-threaded ``scalar_rgb`` rendering gives ot
 one generation to the next with the same seeds (the tiny suite twice: exposures 1.1252 and 1.1280, photos
 0.24 % apart on average; block scheduling across threads is the likely cause, as reported upstream for
 Mitsuba 0.6, mitsuba-renderer/mitsuba issue 184; not checked further). Statistically the same suite, but
-the pipeline's light fit reads that noise: regenerating the full suite in session 11 moved the fit's objects
-PSNR by up to 1.4 dB in a room with the same code (lamp_in_view 29.05 -> 27.70 dB, ceiling 29.77 -> 28.93,
-coloured_walls 21.08 -> 21.18 at run seed 0). Compare variants on one cached suite, as bench/lighting.py does.
+the pipeline's light fit reads that noise: two generations of the full suite give the same code's fit objects
+PSNR up to 1.4 dB apart in a room at run seed 0. Compare variants on one cached suite, as bench/lighting.py does
+(each room's render fingerprint, ``render`` in its results, says which generation a figure is on).
 
 Why it is independent of our tracer: Mitsuba 3 (``scalar_rgb``, ``path`` integrator, max_depth
 :data:`MAX_DEPTH`) renders every image from the geometry, materials and emitters defined here, not from the

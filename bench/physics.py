@@ -433,14 +433,11 @@ def main(argv: list[str] | None = None) -> int:
     res.notes.append(
         "Seconds: process CPU seconds per drop with BLAS limited to one thread (threadpoolctl), wall seconds "
         "beside them (this 2-core machine was shared with other benchmarks: wall >= CPU). The room's grid, "
-        "mesh BVH and surface facts (RoomInfo) are built once per room, as the simulate stage now does per "
+        "mesh BVH and surface facts (RoomInfo) are built once per room, as the simulate stage does per "
         "worker process. Baseline (same run, figure key redkitchen_lmo_on_shell_baseline): bodies left "
         "resting on the 1 cm shell (rest_thickness = room_thickness, the behaviour before issue 16). "
         "surface_gap: per accepted object held up by the scan (not by another object), the smallest signed "
-        "distance of the object's own hull vertices to the scan mesh (not to a shell). Before this "
-        "session (bench/results/physics.json at f0b1f46, not re-run: the engine changed) the engine measured "
-        "0.69 s wall / 0.64 s CPU median per drop, p99 10.3 mm / max 18.4 mm over all drops, 95 % accepted "
-        "with rejection above 1 cm (max 3.7 mm in accepted drops).")
+        "distance of the object's own hull vertices to the scan mesh (not to a shell).")
     res.notes.append(
         "MuJoCo plane scenes: 6 scenes of 5 bodies (boxes as box geoms, convex prisms as meshes) on a plane, "
         "MuJoCo 3 s at 2 ms with the same solref/solimp and elliptic cones is the rest reference. 'dropped 8 "

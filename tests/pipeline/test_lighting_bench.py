@@ -81,24 +81,21 @@ def test_a_tuning_room_outside_the_suite_is_its_own_group():
     assert s["dev"]["fit"]["psnr_objects_mean"] == 20.0 and s["all"]["fit"]["psnr_objects_mean"] == 31.0
 
 
-def test_merge_keeps_the_earlier_figures(tmp_path):
-    """lighting_seeds.json holds every session's figures and what was tried: a run with --seeds writes its own
-    keys first and keeps the rest after them, in their order."""
-    from bench.lighting import merge_into
+def test_seeds_file_holds_the_current_figures_only(tmp_path):
+    """A run with --seeds rewrites lighting_seeds.json: its figures replace the old ones, and keys the run does not
+    write (figures of other code or another render, diagnostics) are not kept."""
+    from bench.lighting import write_seeds
 
     path = tmp_path / "lighting_seeds.json"
-    old = {"what": "old", "rooms": {"ceiling": {"psnr_objects": [1.0]}}, "session22_diagnostics": {"x": [1, 2]},
-           "before_session8": {"y": "z"}}
+    old = {"what": "old", "rooms": {"ceiling": {"psnr_objects": [1.0]}, "spot": {"psnr_objects": [2.0]}},
+           "screens_diagnostics": {"x": [1, 2]}, "previous_render": {"y": "z"}}
     path.write_text(json.dumps(old, indent=1))
-    merge_into(path, {"what": "new", "rooms": {"spot": {}}, "seeds": [0, 1]})
-    got = json.loads(path.read_text())
-    assert list(got) == ["what", "rooms", "seeds", "session22_diagnostics", "before_session8"]
-    assert got["what"] == "new" and got["rooms"] == {"spot": {}} and got["seeds"] == [0, 1]
-    assert got["session22_diagnostics"] == old["session22_diagnostics"]
-    assert got["before_session8"] == old["before_session8"]
-    new = tmp_path / "fresh.json"
-    merge_into(new, {"what": "w"})
-    assert json.loads(new.read_text()) == {"what": "w"}
+    block = {"what": "new", "rooms": {"spot": {"psnr_objects": [29.0, 28.5]}}, "seeds": [0, 1]}
+    write_seeds(path, block)
+    assert json.loads(path.read_text()) == block
+    fresh = tmp_path / "fresh.json"
+    write_seeds(fresh, {"what": "w"})
+    assert json.loads(fresh.read_text()) == {"what": "w"}
 
 
 @pytest.mark.parametrize("args, says", [
