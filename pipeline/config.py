@@ -614,16 +614,16 @@ def template_toml(header: str = "") -> str:
 
 
 def reference_markdown() -> str:
-    """Markdown configuration reference generated from the field declarations (for the README)."""
+    """Markdown configuration reference generated from the field declarations (for docs/config.md): one section
+    per table, one list item per key with its default and meaning (a list, not a table: some meanings run to a
+    paragraph)."""
     out = []
     for table, cls in TABLES.items():
-        out.append(f"### `[{table}]` - {cls.__doc__.strip().splitlines()[0]}\n")
-        out.append("| key | default | meaning |")
-        out.append("|---|---|---|")
+        out.append(f"## `[{table}]` - {cls.__doc__.strip().splitlines()[0]}\n")
         for f in dataclasses.fields(cls):
             m = f.metadata
             extra = f" (one of {', '.join(map(repr, m['choices']))})" if m["choices"] else ""
-            out.append(f"| `{f.name}` | `{_toml_value(f.default)}` | {m['help']}{extra} |")
+            out.append(f"- `{f.name}` = `{_toml_value(f.default)}`: {m['help']}{extra}")
         out.append("")
     return "\n".join(out)
 
