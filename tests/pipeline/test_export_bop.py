@@ -221,7 +221,7 @@ def test_bop_toolkit_recomputes_gt_info_and_masks(run):
     judge = Path(__file__).with_name("boptk_judge.py")
     # bop_toolkit's vispy renderer samples pixel (r, c) at u = c + 0.5, v = r + 0.5 (OpenGL pixel centres);
     # we (OpenCV) sample at u = c, v = r. Rendering with cx + 0.5, cy + 0.5 gives our convention: without
-    # it, 37 of 42 boxes differ by a pixel and small instances' IoU drops to 0.56 (README: Coordinates).
+    # it, 37 of 42 boxes differ by a pixel and small instances' IoU drops to 0.56 (docs/output.md: Coordinates).
     out = subprocess.run([str(py), str(judge), str(run["root"]), str(BOP_VISIB_DELTA_M * 1000), "0.5"],
                          capture_output=True, text=True, timeout=300, env={**os.environ, "PYTHONPATH": ""})
     assert out.returncode == 0, out.stderr[-3000:]
