@@ -232,36 +232,9 @@ def composite_full(photo: np.ndarray, pbr: np.ndarray, coverage: np.ndarray, sha
     _check_image("labels", np.asarray(labels), hw, None)
     mask = np.asarray(labels) > 0
     photo_lin = color.decode_u8(photo)
-    g = np.float32(gain)
-
-    cov = _clean_coverage(coverage) * _dilate(mask, edge_band)
-    p = _clean_radiance(pbr) * (cov > 0)[..., None]
-    colour = unpremultiply(p, cov, photo_lin / max(g, 1e-12)) * g
-    if soft_edges:
-        # a labelled pixel the tracer found wholly uncovered (meshes of raster and trace differ a little):
-        # keep the mask's word for it so the image and the masks stay aligned
-        alpha = np.where(mask & (cov <= _COVER_EPS), np.float32(1.0), cov)
-    else:
-        alpha = mask.astype(np.float32)
-    alpha = np.where(alpha > _COVER_EPS, alpha, 0.0).astype(np.float32)
-    layer = colour * alpha[..., None]
-    if shadows:
-        sr = np.nan_to_num(np.asarray(shadow_ratio, np.float32), nan=1.0, posinf=1.0, neginf=1.0)
-        sr = np.clip(sr, 0.0, _SHADOW_RATIO_MAX)
-        sr = _fill_under_objects(sr, mask)   # the tracer wrote 1 on labelled pixels only
-    else:
-        sr = np.ones(hw, np.float32)
-
-    def blend(sigma: float, sl: tuple[slice, slice] = (slice(None), slice(None))
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        # (linear composite, blurred alpha, blurred shadow ratio) of the window ``sl``
-        lay, al, s = layer[sl], alpha[sl], sr[sl]
-        if sigma > 0:
-            lay, al = cl.gaussian_blur(lay, sigma), cl.gaussian_blur(al, sigma)
-            s = cl.gaussian_blur(s, sigma) if shadows else s
-        al = np.clip(al, 0.0, 1.0)
-        out = lay + (1.0 - al)[..., None] * photo_lin[sl] * s[..., None]
-        return out, al, s
+    alpha, layer = _object_layer(pbr, coverage, mask, photo_lin, np.float32(gain), soft_edges=soft_edges,
+                                 edge_band=edge_band)
+    sr = _shadow_layer(shadow_ratio, mask) if shadows else np.ones(hw, np.float32)
 
     objects = alpha > 0
     box = _bbox(objects, _BLUR_CROP_MARGIN)
@@ -273,29 +246,15 @@ def composite_full(photo: np.ndarray, pbr: np.ndarray, coverage: np.ndarray, sha
         if box is None:
             blur_sigma = 0.0
         else:
-            # the objects' silhouettes (not their soft interior shading, not the photo beside them)
-            half = alpha >= 0.5
-            near = (_dilate(half, 1) & _dilate(~half, 1))[box]
-            gray = cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY)
-            # the render is measured with the photo's own (gray) noise level: noise makes edges look sharper
-            grain = rng.standard_normal(gray[box].shape, dtype=np.float32) * np.float32(cl.noise_sigma(gray, ring))
-            blur_sigma, photo_edge = cl.match_blur_sigma(
-                gray[box], ~_dilate(objects, 1)[box],
-                lambda s: cv2.cvtColor(color.encode_u8(blend(s, box)[0]), cv2.COLOR_RGB2GRAY).astype(np.float32)
-                + grain, near)
-    out_lin, al, s = blend(float(blur_sigma))
+            blur_sigma, photo_edge = _match_blur(photo, photo_lin, layer, alpha, sr, shadows, box, ring, rng)
+    out_lin, al, s = _blend(layer, alpha, sr, photo_lin, shadows, float(blur_sigma))
     out = color.linear_to_srgb(out_lin) * np.float32(255.0)
 
     noise_added = 0.0
     if noise_sigma is None:
         noise_sigma = 0.0 if box is None else cl.noise_sigma(photo, ring)
     if noise_sigma > 0 and objects.any():
-        inner = (al >= 0.99) & ~_dilate(~(al >= 0.99), 1)
-        render_sigma = cl.noise_sigma(np.clip(out, 0, 255), inner)
-        noise_added = cl.noise_to_add(float(noise_sigma), render_sigma)
-        if noise_added > 0:
-            n = rng.standard_normal(out.shape, dtype=np.float32) * np.float32(noise_added)
-            out = out + n * al[..., None]
+        out, noise_added = _match_noise(out, al, float(noise_sigma), rng)
     image = np.clip(np.round(out), 0, 255).astype(np.uint8)
     changed = (al > 0) | (s != 1.0)
     image = np.where(changed[..., None], image, photo)
@@ -303,9 +262,81 @@ def composite_full(photo: np.ndarray, pbr: np.ndarray, coverage: np.ndarray, sha
                      photo_noise=float(noise_sigma), noise_added=float(noise_added))
 
 
-# ---------------------------------------------------------------------------------------------------
-# Stage
-# ---------------------------------------------------------------------------------------------------
+def _object_layer(pbr: np.ndarray, coverage: np.ndarray, mask: np.ndarray, photo_lin: np.ndarray, g: np.float32,
+                  *, soft_edges: bool, edge_band: int) -> tuple[np.ndarray, np.ndarray]:
+    """The objects' alpha (H, W) float32 and their premultiplied linear layer (H, W, 3) in photo units.
+
+    Coverage is trusted within ``edge_band`` pixels of the label mask; colour is the traced radiance
+    unpremultiplied (the photo where nothing was traced) times the gain ``g``.
+    """
+    cov = _clean_coverage(coverage) * _dilate(mask, edge_band)
+    p = _clean_radiance(pbr) * (cov > 0)[..., None]
+    colour = unpremultiply(p, cov, photo_lin / max(g, 1e-12)) * g
+    if soft_edges:
+        # a labelled pixel the tracer found wholly uncovered (meshes of raster and trace differ a little):
+        # keep the mask's word for it so the image and the masks stay aligned
+        alpha = np.where(mask & (cov <= _COVER_EPS), np.float32(1.0), cov)
+    else:
+        alpha = mask.astype(np.float32)
+    alpha = np.where(alpha > _COVER_EPS, alpha, 0.0).astype(np.float32)
+    return alpha, colour * alpha[..., None]
+
+
+def _shadow_layer(shadow_ratio: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """The shadow ratio (H, W) float32 made safe to multiply the photo by: finite, clamped to
+    [0, :data:`_SHADOW_RATIO_MAX`], and filled in under the objects (the tracer wrote 1 there)."""
+    sr = np.nan_to_num(np.asarray(shadow_ratio, np.float32), nan=1.0, posinf=1.0, neginf=1.0)
+    sr = np.clip(sr, 0.0, _SHADOW_RATIO_MAX)
+    return _fill_under_objects(sr, mask)   # the tracer wrote 1 on labelled pixels only
+
+
+def _blend(layer: np.ndarray, alpha: np.ndarray, sr: np.ndarray, photo_lin: np.ndarray, shadows: bool,
+           sigma: float, sl: tuple[slice, slice] = (slice(None), slice(None))
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(linear composite, blurred alpha, blurred shadow ratio) of the window ``sl``: the object layer over
+    the photo darkened by the shadow ratio, the layer, alpha and ratio blurred by ``sigma`` pixels first."""
+    lay, al, s = layer[sl], alpha[sl], sr[sl]
+    if sigma > 0:
+        lay, al = cl.gaussian_blur(lay, sigma), cl.gaussian_blur(al, sigma)
+        s = cl.gaussian_blur(s, sigma) if shadows else s
+    al = np.clip(al, 0.0, 1.0)
+    out = lay + (1.0 - al)[..., None] * photo_lin[sl] * s[..., None]
+    return out, al, s
+
+
+def _match_blur(photo: np.ndarray, photo_lin: np.ndarray, layer: np.ndarray, alpha: np.ndarray, sr: np.ndarray,
+                shadows: bool, box: tuple[slice, slice], ring: np.ndarray, rng: np.random.Generator
+                ) -> tuple[float, float]:
+    """The blur (sigma, pixels) that makes the objects' silhouettes as sharp as the photo's edges, and the
+    photo's edge sigma, measured in the window ``box`` (:func:`pipeline.camera_look.match_blur_sigma`) with
+    the photo's gray noise level measured in ``ring``."""
+    objects = alpha > 0
+    # the objects' silhouettes (not their soft interior shading, not the photo beside them)
+    half = alpha >= 0.5
+    near = (_dilate(half, 1) & _dilate(~half, 1))[box]
+    gray = cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY)
+    # the render is measured with the photo's own (gray) noise level: noise makes edges look sharper
+    grain = rng.standard_normal(gray[box].shape, dtype=np.float32) * np.float32(cl.noise_sigma(gray, ring))
+    return cl.match_blur_sigma(
+        gray[box], ~_dilate(objects, 1)[box],
+        lambda s: cv2.cvtColor(color.encode_u8(_blend(layer, alpha, sr, photo_lin, shadows, s, box)[0]),
+                               cv2.COLOR_RGB2GRAY).astype(np.float32)
+        + grain, near)
+
+
+def _match_noise(out: np.ndarray, al: np.ndarray, noise_sigma: float, rng: np.random.Generator
+                 ) -> tuple[np.ndarray, float]:
+    """``out`` (H, W, 3) float32 sRGB 0..255 with sensor noise added over the objects (weighted by the
+    blurred alpha ``al``) so their noise matches the photo's ``noise_sigma`` (gray levels); and the
+    noise added."""
+    inner = (al >= 0.99) & ~_dilate(~(al >= 0.99), 1)
+    render_sigma = cl.noise_sigma(np.clip(out, 0, 255), inner)
+    noise_added = cl.noise_to_add(float(noise_sigma), render_sigma)
+    if noise_added > 0:
+        n = rng.standard_normal(out.shape, dtype=np.float32) * np.float32(noise_added)
+        out = out + n * al[..., None]
+    return out, noise_added
+
 
 def plan(ctx: StageContext) -> list[Item]:
     """One item per raster frame with status ok (the frames the trace stage traced)."""

@@ -21,6 +21,7 @@ metallic and roughness from glTF, defaults otherwise) and ``info`` = BOP models_
 from __future__ import annotations
 
 import logging
+import os
 import re
 from pathlib import Path
 
@@ -120,12 +121,69 @@ def _bop_symmetries(entry: dict, scale: float, where: str) -> dict:
 # One file
 # ---------------------------------------------------------------------------------------------------
 
+class _ModelFolderResolver:
+    """The files a model file refers to (a glTF's buffers and images, an OBJ's materials and textures),
+    found in the model's folder; trimesh's resolver interface (``get``, ``[]``).
+
+    A reference must name a file inside that folder: ``../`` or an absolute path is refused (a model
+    made elsewhere must not make the pipeline read files beside it). The file found there may be a
+    symlink to anywhere and is followed: whoever made the link chose the file (trimesh's own resolver
+    refuses it because the link's target lies outside the folder). When the model file itself is a
+    symlink, the folder of its target is searched next. References not found are kept in ``missing``
+    and ``outside`` for the error message.
+    """
+
+    def __init__(self, path: Path):
+        folder = Path(os.path.abspath(path)).parent
+        self.roots = [folder]
+        real = path.resolve().parent
+        if real != folder.resolve():
+            self.roots.append(real)
+        self.missing: list[str] = []
+        self.outside: list[str] = []
+
+    def get(self, name: str) -> bytes:
+        name = name.strip()
+        for root in self.roots:
+            # as written, without a leading "/", then the bare file name (trimesh's own candidates)
+            for cand in dict.fromkeys((name, name.lstrip("/"), os.path.basename(name))):
+                p = Path(os.path.normpath(root / cand))
+                if p.is_relative_to(root) and p.is_file():
+                    return p.read_bytes()
+        if Path(os.path.normpath(self.roots[0] / name)).is_relative_to(self.roots[0]):
+            self.missing.append(name)
+        else:
+            self.outside.append(name)
+        raise FileNotFoundError(name)
+
+    def __getitem__(self, name: str) -> bytes:
+        return self.get(name)
+
+    def error(self, path: Path) -> str | None:
+        """The message for a model that failed to load because of its references, or None."""
+        folder = self.roots[0]
+        if self.outside:
+            return (f"{path}: the model refers to {self.outside[0]!r}, outside its folder {folder}; a model's "
+                    f"files must be in its folder (a model must not read other files): put the file, or a "
+                    f"symlink to it, in {folder} and refer to it by its name there, or export the model as "
+                    f"one .glb file")
+        if self.missing:
+            return (f"{path}: the model refers to {self.missing[0]!r}, which is not in {folder}; copy the "
+                    f"file exported with the model there (a symlink to it is fine), or export the model as "
+                    f"one .glb file")
+        return None
+
+
 def _load_trimesh(path: Path):
     import trimesh
 
+    resolver = _ModelFolderResolver(path)
     try:
-        loaded = trimesh.load(str(path), process=False)
+        loaded = trimesh.load(str(path), process=False, resolver=resolver)
     except Exception as e:  # noqa: BLE001 - trimesh raises many types for bad files
+        msg = resolver.error(path)
+        if msg is not None:
+            raise InputError(msg) from None
         raise InputError(f"{path}: object model cannot be read ({type(e).__name__}: {e}); re-export it as "
                          f"PLY, OBJ or glTF") from None
     if isinstance(loaded, trimesh.Scene):

@@ -203,25 +203,8 @@ def render_frame(rasterizer, *, K: np.ndarray, T_c2w: np.ndarray, width: int, he
         return reject("bound", f"objects project onto at most {bound:.2%} of the image "
                                f"(< raster.min_visible_area = {cfg.min_visible_area:.2%})", bound_share=bound)
 
-    tile = (min(TILE, width), min(TILE, height))
-    crops: list = [None] * n
-    rects: list = [None] * n
-    amodal = np.zeros((n, height, width), bool)
-    px_outside = np.zeros(n, np.int64)
-    box_outside: list = [None] * n
-    for i in range(n):
-        inside, outside = annotate.split_window(windows[i], width, height)
-        T_m2w = annotate.rigid(placement.R_m2w[i], placement.t_m2w[i])
-        inst = [(mesh_keys[int(placement.obj_ids[i])], T_m2w)]
-        rects[i] = inside
-        if inside is not None:
-            d = render_rect(rasterizer, K, T_c2w, inst, inside, tile, (width, height))
-            crops[i] = (d, inside[0], inside[1])
-            amodal[i, inside[1]:inside[3], inside[0]:inside[2]] = d > 0
-        for rect in outside:
-            hit = render_rect(rasterizer, K, T_c2w, inst, rect, tile, (width, height)) > 0
-            px_outside[i] += int(hit.sum())
-            box_outside[i] = annotate.union_box(box_outside[i], annotate.bbox_xywh(hit, rect[0], rect[1]))
+    passes = object_passes(rasterizer, K, T_c2w, placement, mesh_keys, windows, width, height)
+    crops, rects, amodal = passes.crops, passes.rects, passes.amodal
     depth, front = annotate.compose_front_crops(crops, width, height)
     obj_px = int((front > 0).sum())
     if obj_px / area < cfg.min_visible_area:
@@ -246,13 +229,55 @@ def render_frame(rasterizer, *, K: np.ndarray, T_c2w: np.ndarray, width: int, he
     stored = annotate.quantize_depth(written, depth_scale)
     visib = annotate.bop_visib_masks(crops, (height, width), n, stored, K, BOP_VISIB_DELTA_M)
     inst = annotate.instance_annotations(obj_ids=placement.obj_ids, R_m2c=R_m2c, t_m2c=t_m2c, amodal=amodal,
-                                         px_outside=px_outside, box_outside=box_outside, visib=visib,
+                                         px_outside=passes.px_outside, box_outside=passes.box_outside,
+                                         visib=visib,
                                          valid_depth=stored > 0, visib_threshold=cfg.visib_threshold,
                                          rects=rects)
     for a, R, t in zip(inst, placement.R_m2w, placement.t_m2w):   # the world poses, as simulate placed them
         a["R_m2w"], a["t_m2w"] = np.asarray(R, np.float64).tolist(), np.asarray(t, np.float64).tolist()
     return FrameResult(status="ok", reason="", check="", instances=inst, depth=depth, labels=labels,
                        amodal=amodal, front=front, stats=stats, visib=visib, written_depth=written, **base)
+
+
+@dataclass(frozen=True)
+class ObjectPasses:
+    """Each instance rendered alone (:func:`object_passes`): its depth inside the image and its extent
+    beyond it."""
+
+    crops: list              # per instance: (depth crop (h, w) float32 m, x0, y0) inside the image, or None
+    rects: list              # per instance: its window inside the image (x0, y0, x1, y1) px, or None
+    amodal: np.ndarray       # (N, H, W) bool, unoccluded silhouette inside the image
+    px_outside: np.ndarray   # (N,) int64, silhouette pixels beyond the image borders
+    box_outside: list        # per instance: (x, y, w, h) box of those pixels, or None
+
+
+def object_passes(rasterizer, K: np.ndarray, T_c2w: np.ndarray, placement: Placement, mesh_keys: dict[int, str],
+                  windows: list, width: int, height: int) -> ObjectPasses:
+    """Render each instance alone in its projected window (``windows``, from
+    :func:`pipeline.annotate.projected_window`): inside the image for its depth and amodal mask, beyond
+    the borders only to count its silhouette pixels and their box there (the BOP canvas is larger than
+    the image)."""
+    n = len(placement.obj_ids)
+    tile = (min(TILE, width), min(TILE, height))
+    crops: list = [None] * n
+    rects: list = [None] * n
+    amodal = np.zeros((n, height, width), bool)
+    px_outside = np.zeros(n, np.int64)
+    box_outside: list = [None] * n
+    for i in range(n):
+        inside, outside = annotate.split_window(windows[i], width, height)
+        T_m2w = annotate.rigid(placement.R_m2w[i], placement.t_m2w[i])
+        inst = [(mesh_keys[int(placement.obj_ids[i])], T_m2w)]
+        rects[i] = inside
+        if inside is not None:
+            d = render_rect(rasterizer, K, T_c2w, inst, inside, tile, (width, height))
+            crops[i] = (d, inside[0], inside[1])
+            amodal[i, inside[1]:inside[3], inside[0]:inside[2]] = d > 0
+        for rect in outside:
+            hit = render_rect(rasterizer, K, T_c2w, inst, rect, tile, (width, height)) > 0
+            px_outside[i] += int(hit.sum())
+            box_outside[i] = annotate.union_box(box_outside[i], annotate.bbox_xywh(hit, rect[0], rect[1]))
+    return ObjectPasses(crops=crops, rects=rects, amodal=amodal, px_outside=px_outside, box_outside=box_outside)
 
 
 def frame_doc(result: FrameResult, *, scene: str, drop: int, frame: int, frame_id: int,

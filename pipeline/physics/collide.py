@@ -175,21 +175,65 @@ def _pick(d: np.ndarray, pts: np.ndarray, k: int, patch: float, reach: np.ndarra
     return live[rows], idx[rows, slot], dk[rows, slot]
 
 
+@dataclass(frozen=True)
+class PosedBodies:
+    """The bodies' collision geometry placed in the world at one state, shared by the collision sub-steps."""
+
+    R: np.ndarray        # (B, 3, 3) float64, body-to-world rotations
+    Wv: np.ndarray       # (B, V, 3) float64, m, world hull vertices (padded)
+    vmask: np.ndarray    # (B, V) bool, valid entries of Wv
+    Wrv: np.ndarray      # (B, Vr, 3) float64, m, world vertices that touch the room (Wv or the object's own)
+    rmask: np.ndarray    # (B, Vr) bool, valid entries of Wrv
+    spec: np.ndarray     # (B,) float64, m, speculative margin (:func:`speculative_margin`)
+    awake: np.ndarray    # (B,) bool
+    k: int               # contact points kept per (body, other, side)
+    patch: float         # m, points this close to the deepest one form the touching patch
+    n_other: int         # number of "other" ids in a contact key (bodies, planes, the room)
+    n_feat: int          # number of feature ids per (body, other) in a contact key
+
+
+# One group of contacts found by a sub-step: (body_a int32, body_b int32, pos, normal, dist, key int64).
+ContactRows = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
 def collide(model: Model, state: State) -> Contacts:
     """All contacts of the awake bodies (and between awake and sleeping ones) at ``state``.
 
-    Contacts between two sleeping bodies, or a sleeping body and the static world, are skipped.
+    Contacts between two sleeping bodies, or a sleeping body and the static world, are skipped. The
+    sub-steps, in the order their contacts are listed: :func:`plane_contacts`, :func:`room_contacts`,
+    :func:`body_pair_contacts`.
     """
     B = model.nbody
     if B == 0:
         return empty_contacts()
+    g = pose_bodies(model, state)
+    out: list[ContactRows] = []
+    aw = np.flatnonzero(g.awake)
+    if len(aw):
+        out += plane_contacts(model, g, aw)
+        out += room_contacts(model, state, g, aw)
+    if B > 1:
+        out += body_pair_contacts(model, state, g)
+    if not out:
+        return empty_contacts()
+    a = np.concatenate([o[0] for o in out])
+    b = np.concatenate([o[1] for o in out])
+    fa = model.body_friction[a]
+    fb = np.where(b >= 0, model.body_friction[np.maximum(b, 0)], fa)
+    return Contacts(body_a=a, body_b=b, pos=np.concatenate([o[2] for o in out]),
+                    normal=np.concatenate([o[3] for o in out]), dist=np.concatenate([o[4] for o in out]),
+                    friction=np.maximum(fa, fb), key=np.concatenate([o[5] for o in out]))
+
+
+def pose_bodies(model: Model, state: State) -> PosedBodies:
+    """The world geometry of every body at ``state`` (computed once per step, read by every sub-step)."""
+    B = model.nbody
     k = model.opt.contacts_per_pair
     patch = 1e-3   # m: points this close to the deepest one form the touching patch
     R = quat_to_mat(state.quat)
     Wv = world_vertices(model, R, state.pos)                        # (B, V, 3)
     V = Wv.shape[1]
     vmask = np.arange(V)[None, :] < model.body_nvert[:, None]     # (B, V)
-    rad = model.body_radius
     spec = speculative_margin(model, state)
     awake = ~state.asleep
     P = len(model.plane)
@@ -200,136 +244,172 @@ def collide(model: Model, state: State) -> Contacts:
         Wrv = np.einsum("bij,bvj->bvi", R, model.body_room_verts) + state.pos[:, None, :]
         rmask = np.arange(Wrv.shape[1])[None, :] < model.body_room_nvert[:, None]
     n_feat = max(2 * V + 1, Wrv.shape[1])
-    out = {k_: [] for k_ in ("a", "b", "pos", "n", "d", "key")}
+    return PosedBodies(R=R, Wv=Wv, vmask=vmask, Wrv=Wrv, rmask=rmask, spec=spec, awake=awake, k=k, patch=patch,
+                       n_other=n_other, n_feat=n_feat)
 
-    def emit(a, b, pos, n, d, other, vidx):
-        out["a"].append(a.astype(np.int32))
-        out["b"].append(b.astype(np.int32))
-        out["pos"].append(pos)
-        out["n"].append(n)
-        out["d"].append(d)
-        out["key"].append((a.astype(np.int64) * n_other + other) * n_feat + vidx)
 
-    aw = np.flatnonzero(awake)
-    if len(aw):
-        # --- static planes -----------------------------------------------------------------------
-        for p in range(P):
-            n = model.plane[p, :3]
-            d = Wv[aw] @ n - model.plane[p, 3] - rad[aw, None]            # (A, V)
-            d = np.where(vmask[aw], d, np.inf)
-            bi, vi, dk = _pick(d, Wv[aw], k, patch, spec[aw, None])
-            body = aw[bi]
-            pts = Wv[body, vi] - n * rad[body, None]
-            emit(body, np.full(len(body), -1), pts, np.broadcast_to(n, pts.shape).copy(), dk, B + p, vi)
-        # --- room distance field -------------------------------------------------------------------
-        if model.has_room:
-            # broad phase: the trilinear field changes by at most sqrt(3) per metre, so a body whose
-            # centre is farther from the surface than its points can reach has no candidate
-            cu, _ = room_distance(model, state.pos[aw], gradient=False)
-            ar = aw[~(cu - np.sqrt(3.0) * model.body_bound[aw] > model.room_thickness + rad[aw] + spec[aw]
-                      + 0.5 * model.room_spacing)]
-        if model.has_room and len(ar):
-            near = model.room_thickness + rad[ar, None] + spec[ar, None]
-            vm = rmask[ar]
-            Wr = Wrv[ar]
-            udf, grad = room_distance(model, Wr)
-            if model.room_mesh is not None:
-                sel = vm & (udf < near + 0.5 * model.room_spacing)
-                if np.any(sel):
-                    de, ne = model.room_mesh.closest(
-                        Wr[sel], np.broadcast_to(state.pos[ar][:, None, :], Wr.shape)[sel])
-                    udf[sel] = de
-                    grad[sel] = ne
-            d = udf - model.room_thickness - rad[ar, None]
-            d = np.where(vm, d, np.inf)
-            bi, vi, dk = _pick(d, Wr, k, patch, spec[ar, None])
-            body = ar[bi]
-            nrm = grad[bi, vi]
-            pts = Wrv[body, vi] - nrm * rad[body, None]
-            emit(body, np.full(len(body), -1), pts, nrm, dk, B + P, vi)
-    # --- body pairs ------------------------------------------------------------------------------
-    if B > 1:
-        I, J = np.triu_indices(B)
-        off = I != J
-        I, J = I[off], J[off]
-        reach = model.body_bound[I] + model.body_bound[J] + spec[I] + spec[J]
-        close = np.linalg.norm(state.pos[I] - state.pos[J], axis=1) < reach
-        close &= awake[I] | awake[J]
-        I, J = I[close], J[close]
-        if len(I):
-            sph = (model.body_kind[I] == KIND_SPHERE) & (model.body_kind[J] == KIND_SPHERE)
-            # sphere - sphere
-            if np.any(sph):
-                a, b = I[sph], J[sph]
-                dv = state.pos[a] - state.pos[b]
-                dist = np.linalg.norm(dv, axis=1)
-                n = dv / np.maximum(dist, 1e-12)[:, None]
-                d = dist - rad[a] - rad[b]
-                s = d < spec[a] + spec[b]
-                a, b, n, d = a[s], b[s], n[s], d[s]
-                emit(a, b, state.pos[a] - n * rad[a, None], n, d, b, np.zeros(len(a), np.int64))
-            # sphere against a polyhedron: centre against the face planes
-            for A_, B_ in ((I[~sph], J[~sph]), (J[~sph], I[~sph])):
-                sel = (model.body_kind[A_] == KIND_SPHERE) & (model.body_kind[B_] != KIND_SPHERE)
-                A_, B_ = A_[sel], B_[sel]
-                if not len(A_):
-                    continue
-                nW = np.einsum("pij,pfj->pfi", R[B_], model.body_planes[B_, :, :3])
-                dW = model.body_planes[B_, :, 3] + np.einsum("pfi,pi->pf", nW, state.pos[B_])
-                sd = np.einsum("pi,pfi->pf", state.pos[A_], nW) - dW
-                f = np.argmax(sd, axis=1)
-                d = sd[np.arange(len(A_)), f] - rad[A_]
-                s = d < spec[A_] + spec[B_]
-                a, b, f, d = A_[s], B_[s], f[s], d[s]
-                n = nW[s, f] if len(a) else np.zeros((0, 3))
-                emit(a, b, state.pos[a] - n * rad[a, None], n, d, b, np.zeros(len(a), np.int64))
-            # polyhedron pairs: vertices of each body against the face planes of the other
-            pp = (model.body_kind[I] != KIND_SPHERE) & (model.body_kind[J] != KIND_SPHERE)
-            A_, B_ = I[pp], J[pp]
-            if len(A_):
-                Q = len(A_)
-                qa = np.arange(Q)
-                nWB = np.einsum("pij,pfj->pfi", R[B_], model.body_planes[B_, :, :3])   # (Q, F, 3)
-                dWB = model.body_planes[B_, :, 3] + np.einsum("pfi,pi->pf", nWB, state.pos[B_])
-                nWA = np.einsum("pij,pfj->pfi", R[A_], model.body_planes[A_, :, :3])
-                dWA = model.body_planes[A_, :, 3] + np.einsum("pfi,pi->pf", nWA, state.pos[A_])
-                mA, mB = vmask[A_], vmask[B_]
-                sdAB = np.einsum("pvi,pfi->pvf", Wv[A_], nWB) - dWB[:, None, :]       # (Q, V, F)
-                sdBA = np.einsum("pvi,pfi->pvf", Wv[B_], nWA) - dWA[:, None, :]
-                sepB = np.where(mA[:, :, None], sdAB, np.inf).min(axis=1)              # (Q, F)
-                sepA = np.where(mB[:, :, None], sdBA, np.inf).min(axis=1)
-                fB, fA = np.argmax(sepB, axis=1), np.argmax(sepA, axis=1)
-                # the pair's axis is the face normal of either body that separates them best (SAT
-                # on face axes); points of each body that lie over the other body (their distance to
-                # it, ignoring faces facing along the axis, is small) become contacts along that axis
-                useB = sepB[qa, fB] >= sepA[qa, fA] - 1e-6
-                n = np.where(useB[:, None], nWB[qa, fB], -nWA[qa, fA])               # (Q, 3) B -> A
-                reach = (spec[A_] + spec[B_])[:, None]
-                lateral = model.opt.margin
-                for side, (sd, nW, sgn, mask, owner) in enumerate((
-                        (sdAB, nWB, 1.0, mA, A_), (sdBA, nWA, -1.0, mB, B_))):
-                    # each point's distance to the other body along the axis (towards it): the line
-                    # p + s u crosses the other polytope for s in [s_lo, s_hi] (each face plane bounds
-                    # s from one side); s_lo is where it enters: the gap (> 0) or depth (< 0). Points
-                    # whose line misses the other body (by more than the margin) are not over it. The
-                    # support plane of the other body along the axis would give every point over it
-                    # the depth of its lowest point: wrong lever arms for a body standing on an edge
-                    cf = -sgn * np.einsum("pfi,pi->pf", nW, n)[:, None, :]              # (Q, 1, F)
-                    with np.errstate(divide="ignore", invalid="ignore"):
-                        ratio = -sd / cf                                                # (Q, V, F)
-                    s_lo = np.where(cf < -1e-9, ratio, -np.inf).max(axis=2)            # (Q, V)
-                    s_hi = np.where(cf > 1e-9, ratio, np.inf).min(axis=2)
-                    par = np.where(np.abs(cf) <= 1e-9, sd, -np.inf).max(axis=2)
-                    miss = np.maximum(s_lo - s_hi, par)
-                    d = np.where(mask & (miss < lateral), s_lo, np.inf)
-                    qi, vi, dk = _pick(d, Wv[owner], k, patch, reach)
-                    emit(A_[qi], B_[qi], Wv[owner[qi], vi], n[qi], dk, B_[qi], vi + side * V)
-    if not out["a"]:
-        return empty_contacts()
-    a = np.concatenate(out["a"])
-    b = np.concatenate(out["b"])
-    fa = model.body_friction[a]
-    fb = np.where(b >= 0, model.body_friction[np.maximum(b, 0)], fa)
-    return Contacts(body_a=a, body_b=b, pos=np.concatenate(out["pos"]), normal=np.concatenate(out["n"]),
-                    dist=np.concatenate(out["d"]), friction=np.maximum(fa, fb),
-                    key=np.concatenate(out["key"]))
+def _rows(g: PosedBodies, a: np.ndarray, b: np.ndarray, pos: np.ndarray, n: np.ndarray, d: np.ndarray,
+          other: int | np.ndarray, vidx: np.ndarray) -> ContactRows:
+    """One group of contacts (C,) with its persistent keys from (body a, other: body, plane or room, feature)."""
+    return (a.astype(np.int32), b.astype(np.int32), pos, n, d,
+            (a.astype(np.int64) * g.n_other + other) * g.n_feat + vidx)
+
+
+def plane_contacts(model: Model, g: PosedBodies, aw: np.ndarray) -> list[ContactRows]:
+    """Contacts of the awake bodies ``aw`` (A,) with the static planes: hull vertices (sphere centres
+    minus the radius) against each half-space."""
+    B = model.nbody
+    Wv, vmask, rad, spec, k, patch = g.Wv, g.vmask, model.body_radius, g.spec, g.k, g.patch
+    out = []
+    for p in range(len(model.plane)):
+        n = model.plane[p, :3]
+        d = Wv[aw] @ n - model.plane[p, 3] - rad[aw, None]            # (A, V)
+        d = np.where(vmask[aw], d, np.inf)
+        bi, vi, dk = _pick(d, Wv[aw], k, patch, spec[aw, None])
+        body = aw[bi]
+        pts = Wv[body, vi] - n * rad[body, None]
+        out.append(_rows(g, body, np.full(len(body), -1), pts, np.broadcast_to(n, pts.shape).copy(), dk, B + p, vi))
+    return out
+
+
+def room_contacts(model: Model, state: State, g: PosedBodies, aw: np.ndarray) -> list[ContactRows]:
+    """Contacts of the awake bodies ``aw`` (A,) with the room: their vertices against the room's distance
+    field minus the shell thickness, re-measured on the room mesh where the grid puts them within reach."""
+    if not model.has_room:
+        return []
+    B, P = model.nbody, len(model.plane)
+    rad, spec, k, patch = model.body_radius, g.spec, g.k, g.patch
+    # broad phase: the trilinear field changes by at most sqrt(3) per metre, so a body whose
+    # centre is farther from the surface than its points can reach has no candidate
+    cu, _ = room_distance(model, state.pos[aw], gradient=False)
+    ar = aw[~(cu - np.sqrt(3.0) * model.body_bound[aw] > model.room_thickness + rad[aw] + spec[aw]
+              + 0.5 * model.room_spacing)]
+    if not len(ar):
+        return []
+    near = model.room_thickness + rad[ar, None] + spec[ar, None]
+    vm = g.rmask[ar]
+    Wr = g.Wrv[ar]
+    udf, grad = room_distance(model, Wr)
+    if model.room_mesh is not None:
+        sel = vm & (udf < near + 0.5 * model.room_spacing)
+        if np.any(sel):
+            de, ne = model.room_mesh.closest(
+                Wr[sel], np.broadcast_to(state.pos[ar][:, None, :], Wr.shape)[sel])
+            udf[sel] = de
+            grad[sel] = ne
+    d = udf - model.room_thickness - rad[ar, None]
+    d = np.where(vm, d, np.inf)
+    bi, vi, dk = _pick(d, Wr, k, patch, spec[ar, None])
+    body = ar[bi]
+    nrm = grad[bi, vi]
+    pts = g.Wrv[body, vi] - nrm * rad[body, None]
+    return [_rows(g, body, np.full(len(body), -1), pts, nrm, dk, B + P, vi)]
+
+
+def body_pair_contacts(model: Model, state: State, g: PosedBodies) -> list[ContactRows]:
+    """Contacts between pairs of bodies whose bounding spheres come within reach (at least one awake):
+    :func:`_sphere_pairs`, :func:`_sphere_polyhedron_pairs`, then :func:`_polyhedron_pairs`."""
+    B = model.nbody
+    spec, awake = g.spec, g.awake
+    I, J = np.triu_indices(B)
+    off = I != J
+    I, J = I[off], J[off]
+    reach = model.body_bound[I] + model.body_bound[J] + spec[I] + spec[J]
+    close = np.linalg.norm(state.pos[I] - state.pos[J], axis=1) < reach
+    close &= awake[I] | awake[J]
+    I, J = I[close], J[close]
+    if not len(I):
+        return []
+    sph = (model.body_kind[I] == KIND_SPHERE) & (model.body_kind[J] == KIND_SPHERE)
+    out = []
+    if np.any(sph):
+        out.append(_sphere_pairs(model, state, g, I[sph], J[sph]))
+    out += _sphere_polyhedron_pairs(model, state, g, I[~sph], J[~sph])
+    # polyhedron pairs: vertices of each body against the face planes of the other
+    pp = (model.body_kind[I] != KIND_SPHERE) & (model.body_kind[J] != KIND_SPHERE)
+    if np.any(pp):
+        out += _polyhedron_pairs(model, state, g, I[pp], J[pp])
+    return out
+
+
+def _sphere_pairs(model: Model, state: State, g: PosedBodies, a: np.ndarray, b: np.ndarray) -> ContactRows:
+    """Sphere - sphere contacts of the pairs ``(a, b)`` (Q,) by centre distance."""
+    rad, spec = model.body_radius, g.spec
+    dv = state.pos[a] - state.pos[b]
+    dist = np.linalg.norm(dv, axis=1)
+    n = dv / np.maximum(dist, 1e-12)[:, None]
+    d = dist - rad[a] - rad[b]
+    s = d < spec[a] + spec[b]
+    a, b, n, d = a[s], b[s], n[s], d[s]
+    return _rows(g, a, b, state.pos[a] - n * rad[a, None], n, d, b, np.zeros(len(a), np.int64))
+
+
+def _sphere_polyhedron_pairs(model: Model, state: State, g: PosedBodies, I: np.ndarray, J: np.ndarray
+                             ) -> list[ContactRows]:
+    """Sphere - polyhedron contacts among the pairs ``(I, J)`` (Q,), both ways: the sphere's centre
+    against the polyhedron's face planes (the largest plane distance is the signed distance)."""
+    R, rad, spec = g.R, model.body_radius, g.spec
+    out = []
+    for A_, B_ in ((I, J), (J, I)):
+        sel = (model.body_kind[A_] == KIND_SPHERE) & (model.body_kind[B_] != KIND_SPHERE)
+        A_, B_ = A_[sel], B_[sel]
+        if not len(A_):
+            continue
+        nW = np.einsum("pij,pfj->pfi", R[B_], model.body_planes[B_, :, :3])
+        dW = model.body_planes[B_, :, 3] + np.einsum("pfi,pi->pf", nW, state.pos[B_])
+        sd = np.einsum("pi,pfi->pf", state.pos[A_], nW) - dW
+        f = np.argmax(sd, axis=1)
+        d = sd[np.arange(len(A_)), f] - rad[A_]
+        s = d < spec[A_] + spec[B_]
+        a, b, f, d = A_[s], B_[s], f[s], d[s]
+        n = nW[s, f] if len(a) else np.zeros((0, 3))
+        out.append(_rows(g, a, b, state.pos[a] - n * rad[a, None], n, d, b, np.zeros(len(a), np.int64)))
+    return out
+
+
+def _polyhedron_pairs(model: Model, state: State, g: PosedBodies, A_: np.ndarray, B_: np.ndarray
+                      ) -> list[ContactRows]:
+    """Polyhedron - polyhedron contacts of the pairs ``(A_, B_)`` (Q,): the pair's axis is the face normal
+    that separates them best (SAT on face axes); points of each body that lie over the other become
+    contacts along it, at their own distance to the other body."""
+    R, Wv, vmask, spec, k, patch = g.R, g.Wv, g.vmask, g.spec, g.k, g.patch
+    V = Wv.shape[1]
+    Q = len(A_)
+    qa = np.arange(Q)
+    nWB = np.einsum("pij,pfj->pfi", R[B_], model.body_planes[B_, :, :3])   # (Q, F, 3)
+    dWB = model.body_planes[B_, :, 3] + np.einsum("pfi,pi->pf", nWB, state.pos[B_])
+    nWA = np.einsum("pij,pfj->pfi", R[A_], model.body_planes[A_, :, :3])
+    dWA = model.body_planes[A_, :, 3] + np.einsum("pfi,pi->pf", nWA, state.pos[A_])
+    mA, mB = vmask[A_], vmask[B_]
+    sdAB = np.einsum("pvi,pfi->pvf", Wv[A_], nWB) - dWB[:, None, :]       # (Q, V, F)
+    sdBA = np.einsum("pvi,pfi->pvf", Wv[B_], nWA) - dWA[:, None, :]
+    sepB = np.where(mA[:, :, None], sdAB, np.inf).min(axis=1)              # (Q, F)
+    sepA = np.where(mB[:, :, None], sdBA, np.inf).min(axis=1)
+    fB, fA = np.argmax(sepB, axis=1), np.argmax(sepA, axis=1)
+    # the pair's axis is the face normal of either body that separates them best (SAT
+    # on face axes); points of each body that lie over the other body (their distance to
+    # it, ignoring faces facing along the axis, is small) become contacts along that axis
+    useB = sepB[qa, fB] >= sepA[qa, fA] - 1e-6
+    n = np.where(useB[:, None], nWB[qa, fB], -nWA[qa, fA])               # (Q, 3) B -> A
+    reach = (spec[A_] + spec[B_])[:, None]
+    lateral = model.opt.margin
+    out = []
+    for side, (sd, nW, sgn, mask, owner) in enumerate((
+            (sdAB, nWB, 1.0, mA, A_), (sdBA, nWA, -1.0, mB, B_))):
+        # each point's distance to the other body along the axis (towards it): the line
+        # p + s u crosses the other polytope for s in [s_lo, s_hi] (each face plane bounds
+        # s from one side); s_lo is where it enters: the gap (> 0) or depth (< 0). Points
+        # whose line misses the other body (by more than the margin) are not over it. The
+        # support plane of the other body along the axis would give every point over it
+        # the depth of its lowest point: wrong lever arms for a body standing on an edge
+        cf = -sgn * np.einsum("pfi,pi->pf", nW, n)[:, None, :]              # (Q, 1, F)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = -sd / cf                                                # (Q, V, F)
+        s_lo = np.where(cf < -1e-9, ratio, -np.inf).max(axis=2)            # (Q, V)
+        s_hi = np.where(cf > 1e-9, ratio, np.inf).min(axis=2)
+        par = np.where(np.abs(cf) <= 1e-9, sd, -np.inf).max(axis=2)
+        miss = np.maximum(s_lo - s_hi, par)
+        d = np.where(mask & (miss < lateral), s_lo, np.inf)
+        qi, vi, dk = _pick(d, Wv[owner], k, patch, reach)
+        out.append(_rows(g, A_[qi], B_[qi], Wv[owner[qi], vi], n[qi], dk, B_[qi], vi + side * V))
+    return out

@@ -6,11 +6,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pipeline.errors import InputError
 from pipeline.physics.types import KIND_POLY, KIND_SPHERE, PAD_PLANE_OFFSET, Body, Model, Options, Room, State
+
+if TYPE_CHECKING:
+    from pipeline.physics.roommesh import RoomMesh
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -127,6 +131,10 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
                 opt: Options | None = None, max_vertices: int = 48) -> Model:
     """Validate bodies and the static world and build a frozen :class:`Model`.
 
+    Per body :func:`_principal_frame` then :func:`_collider`; the bodies' geometry is padded to common
+    sizes (:func:`_pad_geometry`); the static world is checked by :func:`_static_planes` and
+    :func:`_room_grid`.
+
     Parameters
     ----------
     bodies
@@ -151,53 +159,11 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
         m = float(b.mass)
         if not (m > 0 and math.isfinite(m)):
             raise InputError(f"physics model: body {i} has mass {m}; give a positive mass (kg)")
-        I = np.asarray(b.inertia, float).reshape(3, 3)
-        com = np.asarray(b.com, float).reshape(3)
-        _check_finite(f"body {i} inertia", I)
-        _check_finite(f"body {i} com", com)
-        I = 0.5 * (I + I.T)
-        w, V = np.linalg.eigh(I)
-        if w[0] <= 0:
-            raise InputError(f"physics model: body {i} inertia is not positive definite "
-                             f"(eigenvalues {w}); recompute the solid's mass properties")
-        if w[0] + w[1] < w[2] * (1 - 1e-6):
-            raise InputError(f"physics model: body {i} inertia violates the triangle inequality "
-                             f"(principal moments {w}); it cannot belong to a real body")
-        if np.linalg.det(V) < 0:
-            V[:, 2] *= -1
-        R_m2b = V.T
-        t_m2b = -R_m2b @ com
+        w, R_m2b, t_m2b = _principal_frame(i, b)
         fr = opt.friction if b.friction < 0 else float(b.friction)
-        if b.radius > 0:
-            kinds.append(KIND_SPHERE)
-            radii.append(float(b.radius))
-            vb = np.zeros((1, 3))
-            pb = np.zeros((0, 4))
-            rb = vb
-            bound = float(b.radius)
-        else:
-            pts = np.asarray(b.vertices, float).reshape(-1, 3)
-            _check_finite(f"body {i} vertices", pts)
-            if len(pts) < 4:
-                raise InputError(f"physics model: body {i} has {len(pts)} vertices; a solid needs >= 4")
-            pts_b = pts @ R_m2b.T + t_m2b
-            ck = (max_vertices, pts_b.tobytes())
-            if ck in b.hull_cache:
-                vb, pb, rb = b.hull_cache[ck]
-            else:
-                try:
-                    vb, pb = hull_planes(pts_b, max_vertices=max_vertices)
-                    rb = surface_points(pts_b)
-                except Exception as e:  # qhull errors: flat or degenerate point sets
-                    raise InputError(f"physics model: body {i} vertices span no volume ({e}); "
-                                     f"a collider needs a 3D hull") from None
-                b.hull_cache.clear()
-                b.hull_cache[ck] = (vb, pb, rb)
-            kinds.append(KIND_POLY)
-            radii.append(0.0)
-            bound = float(np.linalg.norm(vb, axis=1).max())
-            if room is not None:
-                bound = max(bound, float(np.linalg.norm(rb, axis=1).max()))
+        kind, radius, vb, pb, rb, bound = _collider(i, b, R_m2b, t_m2b, max_vertices, room is not None)
+        kinds.append(kind)
+        radii.append(radius)
         masses.append(m)
         inertias.append(w)
         frics.append(fr)
@@ -207,6 +173,85 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
         Rs.append(R_m2b)
         ts.append(t_m2b)
         bounds.append(bound)
+    body_verts, room_verts, body_planes = _pad_geometry(verts, rverts, plns)
+    pl = _static_planes(planes)
+    udf, spacing, origin, room_mesh = _room_grid(room)
+    return Model(body_mass=np.array(masses, float).reshape(B), body_inertia=np.array(inertias).reshape(B, 3),
+                 body_kind=np.array(kinds, np.int32).reshape(B), body_radius=np.array(radii).reshape(B),
+                 body_friction=np.array(frics).reshape(B), body_verts=body_verts,
+                 body_nvert=np.array([len(v) for v in verts], np.int32).reshape(B), body_planes=body_planes,
+                 body_bound=np.array(bounds).reshape(B), body_R_m2b=np.array(Rs).reshape(B, 3, 3),
+                 body_t_m2b=np.array(ts).reshape(B, 3), plane=pl, room_origin=origin,
+                 room_spacing=spacing, room_udf=udf, room_thickness=float(room_thickness), opt=opt,
+                 room_mesh=room_mesh, body_room_verts=room_verts if room is not None else None,
+                 body_room_nvert=np.array([len(v) for v in rverts], np.int32).reshape(B) if room is not None else None)
+
+
+def _principal_frame(i: int, b: Body) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Body ``i``'s principal moments and the map from its object-model frame into its body frame (the
+    centre of mass with the principal axes, right-handed), after checking that its inertia belongs to a
+    real body.
+
+    Returns ``(moments (3,) kg m^2, R_m2b (3, 3), t_m2b (3,) m)``.
+    """
+    I = np.asarray(b.inertia, float).reshape(3, 3)
+    com = np.asarray(b.com, float).reshape(3)
+    _check_finite(f"body {i} inertia", I)
+    _check_finite(f"body {i} com", com)
+    I = 0.5 * (I + I.T)
+    w, V = np.linalg.eigh(I)
+    if w[0] <= 0:
+        raise InputError(f"physics model: body {i} inertia is not positive definite "
+                         f"(eigenvalues {w}); recompute the solid's mass properties")
+    if w[0] + w[1] < w[2] * (1 - 1e-6):
+        raise InputError(f"physics model: body {i} inertia violates the triangle inequality "
+                         f"(principal moments {w}); it cannot belong to a real body")
+    if np.linalg.det(V) < 0:
+        V[:, 2] *= -1
+    R_m2b = V.T
+    t_m2b = -R_m2b @ com
+    return w, R_m2b, t_m2b
+
+
+def _collider(i: int, b: Body, R_m2b: np.ndarray, t_m2b: np.ndarray, max_vertices: int, with_room: bool
+              ) -> tuple[int, float, np.ndarray, np.ndarray, np.ndarray, float]:
+    """Body ``i``'s collision geometry in its body frame: a sphere, or the convex hull of its vertices
+    (cached on the :class:`Body`: the hull does not change between the models of a drop).
+
+    Returns ``(kind, radius m, hull vertices (V, 3), face planes (F, 4), room contact points (Vr, 3),
+    bound m)``; the bound covers the room contact points too when ``with_room``.
+    """
+    if b.radius > 0:
+        vb = np.zeros((1, 3))
+        return KIND_SPHERE, float(b.radius), vb, np.zeros((0, 4)), vb, float(b.radius)
+    pts = np.asarray(b.vertices, float).reshape(-1, 3)
+    _check_finite(f"body {i} vertices", pts)
+    if len(pts) < 4:
+        raise InputError(f"physics model: body {i} has {len(pts)} vertices; a solid needs >= 4")
+    pts_b = pts @ R_m2b.T + t_m2b
+    ck = (max_vertices, pts_b.tobytes())
+    if ck in b.hull_cache:
+        vb, pb, rb = b.hull_cache[ck]
+    else:
+        try:
+            vb, pb = hull_planes(pts_b, max_vertices=max_vertices)
+            rb = surface_points(pts_b)
+        except Exception as e:  # qhull errors: flat or degenerate point sets
+            raise InputError(f"physics model: body {i} vertices span no volume ({e}); "
+                             f"a collider needs a 3D hull") from None
+        b.hull_cache.clear()
+        b.hull_cache[ck] = (vb, pb, rb)
+    bound = float(np.linalg.norm(vb, axis=1).max())
+    if with_room:
+        bound = max(bound, float(np.linalg.norm(rb, axis=1).max()))
+    return KIND_POLY, 0.0, vb, pb, rb, bound
+
+
+def _pad_geometry(verts: list[np.ndarray], rverts: list[np.ndarray], plns: list[np.ndarray]
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The bodies' hull vertices (B, V, 3), room contact points (B, Vr, 3) and face planes (B, F, 4) as
+    arrays: vertices padded by repeating the first, planes by ones that never win a max."""
+    B = len(verts)
     V = max([len(v) for v in verts], default=1)
     F = max([len(p) for p in plns], default=1) or 1
     body_verts = np.zeros((B, V, 3))
@@ -221,12 +266,21 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
         room_verts[i, :len(rverts[i])] = rverts[i]
         room_verts[i, len(rverts[i]):] = rverts[i][0]
         body_planes[i, :len(plns[i])] = plns[i]
+    return body_verts, room_verts, body_planes
+
+
+def _static_planes(planes: np.ndarray | None) -> np.ndarray:
+    """(P, 4) float64 static half-spaces with unit normals (``planes`` checked: finite, no zero normal)."""
     pl = np.zeros((0, 4)) if planes is None else np.asarray(planes, float).reshape(-1, 4)
     _check_finite("planes", pl)
     nn = np.linalg.norm(pl[:, :3], axis=1)
     if np.any(nn <= 0):
         raise InputError("physics model: a static plane has a zero normal")
-    pl = pl / nn[:, None]
+    return pl / nn[:, None]
+
+
+def _room_grid(room: Room | None) -> tuple[np.ndarray, float, np.ndarray, RoomMesh | None]:
+    """The room's distance grid, checked: ``(udf, spacing, origin, mesh)``; an empty grid when no room."""
     if room is not None:
         udf, spacing, origin, room_mesh = room.udf, room.spacing, room.origin, room.mesh
         if udf.ndim != 3 or min(udf.shape) < 2:
@@ -237,15 +291,7 @@ def build_model(bodies: list[Body], *, planes: np.ndarray | None = None,
     else:
         udf, spacing, origin = np.zeros((0, 0, 0), np.float32), 0.0, np.zeros(3)
         room_mesh = None
-    return Model(body_mass=np.array(masses, float).reshape(B), body_inertia=np.array(inertias).reshape(B, 3),
-                 body_kind=np.array(kinds, np.int32).reshape(B), body_radius=np.array(radii).reshape(B),
-                 body_friction=np.array(frics).reshape(B), body_verts=body_verts,
-                 body_nvert=np.array([len(v) for v in verts], np.int32).reshape(B), body_planes=body_planes,
-                 body_bound=np.array(bounds).reshape(B), body_R_m2b=np.array(Rs).reshape(B, 3, 3),
-                 body_t_m2b=np.array(ts).reshape(B, 3), plane=pl, room_origin=origin,
-                 room_spacing=spacing, room_udf=udf, room_thickness=float(room_thickness), opt=opt,
-                 room_mesh=room_mesh, body_room_verts=room_verts if room is not None else None,
-                 body_room_nvert=np.array([len(v) for v in rverts], np.int32).reshape(B) if room is not None else None)
+    return udf, spacing, origin, room_mesh
 
 
 def make_state(model: Model, R_m2w: np.ndarray, t_m2w: np.ndarray, *, vel: np.ndarray | None = None,

@@ -36,7 +36,7 @@ import numpy as np
 
 from pipeline.physics.collide import Contacts
 from pipeline.physics.integrate import inertia_world_inv, quat_to_mat
-from pipeline.physics.types import Model, State
+from pipeline.physics.types import Model, Options, State
 
 
 @dataclass(frozen=True)
@@ -92,6 +92,11 @@ def solve_contacts(model: Model, state: State, free: State, contacts: Contacts,
                    warm: np.ndarray | None = None) -> SolveResult:
     """Contact impulses and the velocities they produce.
 
+    The sub-steps: :func:`contact_jacobian` (rows of the contacts that touch an awake body),
+    :func:`contact_rows` (MuJoCo's reference velocities and regularisers), :class:`ContactSystem` (the
+    cone problem), :func:`_active_set_solve` (exact at rest), then :func:`_projected_gradient` (the
+    iterations, when the direct solve does not meet the optimality conditions).
+
     Parameters
     ----------
     model, state
@@ -106,7 +111,6 @@ def solve_contacts(model: Model, state: State, free: State, contacts: Contacts,
     """
     vel_free, angvel_free, dynamic = free.vel, free.angvel, ~free.asleep
     opt = model.opt
-    dt = opt.timestep
     C = contacts.count
     vel = vel_free.copy()
     angvel = angvel_free.copy()
@@ -120,12 +124,62 @@ def solve_contacts(model: Model, state: State, free: State, contacts: Contacts,
     if not np.any(use):
         return SolveResult(vel, angvel, imp, 0, 0.0)
     ci = np.flatnonzero(use)
-    a, b, dyn_a, dyn_b = a[ci], b[ci], dyn_a[ci], dyn_b[ci]
+    K = len(ci)
+    bodies = np.flatnonzero(dynamic)
+    nd = len(bodies)
+    Jf, Wf = contact_jacobian(model, state, contacts, ci, dyn_a[ci], dyn_b[ci], bodies)
+    # A = J M^-1 J^T is never formed: A y = J (M^-1 J^T y) costs 2 (3K)(6 nd) instead of (3K)^2
+    Adiag = np.einsum("ij,ij->i", Wf, Jf)
+    v0 = np.concatenate([state.vel[bodies], state.angvel[bodies]], axis=1).reshape(-1)
+    vf = np.concatenate([vel_free[bodies], angvel_free[bodies]], axis=1).reshape(-1)
+    u = (Jf @ v0).reshape(K, 3)
+    uf = (Jf @ vf).reshape(K, 3)
+    Ann = Adiag[0::3]
+    target, soft, Rrow = contact_rows(opt, u, contacts.dist[ci], Ann)
+    mu = contacts.friction[ci]
+    # H = A + R formed once (3K x 3K) while that is cheaper than two products with the Jacobian: each
+    # iteration is then one matrix-vector product (the call count, not the flops, costs at these sizes)
+    system = ContactSystem.build(Jf, Wf, Rrow.reshape(-1), (target - uf).reshape(-1), mu, dense=3 * K <= 12 * nd)
+    # Jacobi preconditioner: one scalar per contact (keeps the cone projection a projection)
+    pre = np.repeat(1.0 / (Ann + Rrow[:, 0]), 3)
+    step = _step_size(system, pre)
+    p = np.zeros((K, 3)) if warm is None else project_cone(warm[ci], mu)
+    p = p.reshape(-1)
+    p, exact = _active_set_solve(p.reshape(K, 3), system.hmul, system.c, mu, Jf, Wf, system.Rv, system.H, soft)
+    p, it, res = _projected_gradient(system, p.reshape(-1), step, exact, model.body_bound[bodies], opt)
+    dv = (Wf.T @ p).reshape(nd, 6)
+    vel[bodies] += dv[:, :3]
+    angvel[bodies] += dv[:, 3:]
+    imp[ci] = p.reshape(K, 3)
+    return SolveResult(vel, angvel, imp, it, res)
+
+
+def contact_jacobian(model: Model, state: State, contacts: Contacts, ci: np.ndarray, dyn_a: np.ndarray,
+                     dyn_b: np.ndarray, bodies: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The contact Jacobian and the inverse mass applied to it, for the contacts ``ci``.
+
+    Three rows per contact (normal, two tangents of :func:`tangent_frame`), six columns (linear,
+    angular) per awake body; a sleeping body or the static world has no columns (it acts as static).
+
+    Parameters
+    ----------
+    ci
+        (K,) int64, the contacts that touch an awake body.
+    dyn_a, dyn_b
+        (K,) bool, whether body a / body b of each of those contacts is awake.
+    bodies
+        (nd,) int64, the awake bodies, in column order.
+
+    Returns
+    -------
+    Jf : (3K, 6 nd) float64, row velocities ``u = Jf v``
+    Wf : (3K, 6 nd) float64, ``J M^-1`` (the velocity change per unit row impulse is ``Wf^T``)
+    """
+    a, b = contacts.body_a[ci], contacts.body_b[ci]
     n = contacts.normal[ci]
     t1, t2 = tangent_frame(n)
     D = np.stack([n, t1, t2], axis=1)                                # (K, 3, 3) rows
     K = len(ci)
-    bodies = np.flatnonzero(dynamic)
     col = -np.ones(model.nbody, np.int64)
     col[bodies] = np.arange(len(bodies))
     nd = len(bodies)
@@ -148,21 +202,38 @@ def solve_contacts(model: Model, state: State, free: State, contacts: Contacts,
     W[..., :3] *= invm[None, None, :, None]
     W[..., 3:] = np.einsum("kcbj,bjl->kcbl", J[..., 3:], Iinv)
     Wf = W.reshape(3 * K, nd * 6)
-    # A = J M^-1 J^T is never formed: A y = J (M^-1 J^T y) costs 2 (3K)(6 nd) instead of (3K)^2
-    Adiag = np.einsum("ij,ij->i", Wf, Jf)
-    v0 = np.concatenate([state.vel[bodies], state.angvel[bodies]], axis=1).reshape(-1)
-    vf = np.concatenate([vel_free[bodies], angvel_free[bodies]], axis=1).reshape(-1)
-    u = (Jf @ v0).reshape(K, 3)
-    uf = (Jf @ vf).reshape(K, 3)
-    # soft-constraint parameters (MuJoCo)
+    return Jf, Wf
+
+
+def contact_rows(opt: Options, u: np.ndarray, r: np.ndarray, Ann: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """MuJoCo's soft-constraint targets and regularisers of the contact rows (see the module docstring).
+
+    Parameters
+    ----------
+    opt
+        The options (``timestep``, ``solref``, ``solimp``, ``impratio``, ``soft_impact``).
+    u
+        (K, 3) float64, m/s, row velocities at the start of the step.
+    r
+        (K,) float64, m, signed distances (< 0: penetration).
+    Ann
+        (K,) float64, diagonal of ``A = J M^-1 J^T`` on the normal rows.
+
+    Returns
+    -------
+    target : (K, 3) float64, m/s, the row velocities the impulses aim for
+    soft : (K,) bool, the normal row is soft (penetrating, or arriving with ``soft_impact``)
+    Rrow : (K, 3) float64, the regulariser ``R`` of each row (a hard row gets ``1e-9 A_nn``)
+    """
+    dt = opt.timestep
+    K = len(r)
     tc = max(opt.solref[0], 2 * dt)
     zeta = opt.solref[1]
     dmax = opt.solimp[1]
     kk = 1.0 / (dmax ** 2 * tc ** 2 * zeta ** 2)
     bb = 2.0 / (dmax * tc)
-    r = contacts.dist[ci]
     dimp = impedance(np.minimum(r, 0.0), opt.solimp)
-    Ann = Adiag[0::3]
     Rn = (1 - dimp) / dimp * Ann
     soft = r <= 0
     target = np.empty((K, 3))
@@ -173,50 +244,77 @@ def solve_contacts(model: Model, state: State, free: State, contacts: Contacts,
         Rn_n = Rn
     target[:, 1:] = u[:, 1:] * max(0.0, 1 - bb * dt)   # never reverse the slip (energy)
     Rrow = np.stack([np.where(soft, Rn_n, 1e-9 * Ann), Rn / opt.impratio, Rn / opt.impratio], axis=1)
-    Rv = Rrow.reshape(-1)
-    c = (target - uf).reshape(-1)
-    mu = contacts.friction[ci]
-    # Jacobi preconditioner: one scalar per contact (keeps the cone projection a projection)
-    pre = np.repeat(1.0 / (Ann + Rrow[:, 0]), 3)
+    return target, soft, Rrow
+
+
+@dataclass(frozen=True)
+class ContactSystem:
+    """The cone-constrained problem ``min 1/2 p^T H p - p^T c`` with ``H = A + R``, ``A = J M^-1 J^T``."""
+
+    Jf: np.ndarray               # (3K, 6 nd) float64, contact Jacobian
+    Wf: np.ndarray               # (3K, 6 nd) float64, J M^-1
+    Rv: np.ndarray               # (3K,) float64, regulariser per row
+    c: np.ndarray                # (3K,) float64, m/s, target minus the free row velocities
+    mu: np.ndarray               # (K,) float64, friction coefficients
+    H: np.ndarray | None         # (3K, 3K) float64, formed when dense, else None
+    WfT: np.ndarray | None       # (6 nd, 3K) float64, contiguous Wf^T when H is not formed
+
+    @staticmethod
+    def build(Jf: np.ndarray, Wf: np.ndarray, Rv: np.ndarray, c: np.ndarray, mu: np.ndarray, *,
+              dense: bool) -> "ContactSystem":
+        """The system, with ``H`` formed once when ``dense`` (else products with the Jacobian)."""
+        if dense:
+            H = Jf @ Wf.T
+            H[np.diag_indices_from(H)] += Rv
+            return ContactSystem(Jf, Wf, Rv, c, mu, H, None)
+        return ContactSystem(Jf, Wf, Rv, c, mu, None, np.ascontiguousarray(Wf.T))
+
+    def hmul(self, v: np.ndarray) -> np.ndarray:
+        """``H v`` (3K,)."""
+        if self.H is not None:
+            return self.H @ v
+        return self.Jf @ (self.WfT @ v) + self.Rv * v
+
+
+def _step_size(system: ContactSystem, pre: np.ndarray) -> np.ndarray:
+    """(3K,) step of the preconditioned gradient iterations: ``pre / L`` with ``L`` the largest eigenvalue
+    of the preconditioned ``H`` (10 power iterations, 5 % margin)."""
+    hmul = system.hmul
     sq = np.sqrt(pre)
-    # H = A + R formed once (3K x 3K) while that is cheaper than two products with the Jacobian: each
-    # iteration is then one matrix-vector product (the call count, not the flops, costs at these sizes)
-    dense = 3 * K <= 12 * nd
-    if dense:
-        H = Jf @ Wf.T
-        H[np.diag_indices_from(H)] += Rv
-
-        def hmul(v: np.ndarray) -> np.ndarray:
-            return H @ v
-    else:
-        WfT = np.ascontiguousarray(Wf.T)
-
-        def hmul(v: np.ndarray) -> np.ndarray:
-            return Jf @ (WfT @ v) + Rv * v
-    # step size from the largest eigenvalue of the preconditioned matrix (power iteration)
-    x = np.ones(3 * K)
+    x = np.ones(len(pre))
     for _ in range(10):
         x = sq * hmul(sq * x)
         x /= np.linalg.norm(x)
     L = float(x @ (sq * hmul(sq * x))) * 1.05 + 1e-12
-    step = pre / L
+    return pre / L
+
+
+def _projected_gradient(system: ContactSystem, p: np.ndarray, step: np.ndarray, exact: bool, bnd: np.ndarray,
+                        opt: Options) -> tuple[np.ndarray, int, float]:
+    """Accelerated projected gradient iterations (Nesterov, adaptive restart) from the impulses ``p`` (3K,).
+
+    Each iteration takes ``z = y - step (H y - c)`` and projects it on the cones (:func:`project_cone`,
+    inlined); it stops when no body's velocity (spin times its bound radius ``bnd`` (nd,), m) changes by
+    more than ``opt.tolerance`` or after ``opt.iterations``. None run when ``exact`` (the active-set
+    solve found the solution). Returns ``(p (3K,), iterations, residual)``.
+    """
+    Jf, Wf, Rv, c, mu = system.Jf, system.Wf, system.Rv, system.c, system.mu
+    dense = system.H is not None
+    K = len(mu)
+    nd = len(bnd)
     # projected gradient step z = y - step (H y - c) = M y + step c
     sc = step * c
     if dense:
-        M = -step[:, None] * H
+        M = -step[:, None] * system.H
         M[np.diag_indices_from(M)] += 1.0
     else:
+        WfT = system.WfT
         nstepJ = -step[:, None] * Jf
     wr = 1.0 / step                  # metric of the gradient mapping (restart test)
     # impulse change -> velocity change of the bodies (m/s; spin x bound radius): the stopping measure.
     # Redundant contacts (a face on a plane) make the impulses' split ill-conditioned, not the motion
-    bnd = model.body_bound[bodies]
     Ws = (Wf * np.concatenate([np.ones((nd, 3)), np.repeat(bnd[:, None], 3, 1)], axis=1).reshape(-1)).T.copy()
     dv_it = np.empty(6 * nd)
-    p = np.zeros((K, 3)) if warm is None else project_cone(warm[ci], mu)
-    p = p.reshape(-1)
-    p, exact = _active_set_solve(p.reshape(K, 3), hmul, c, mu, Jf, Wf, Rv, H if dense else None, soft)
-    p = p.reshape(-1)
     y = p.copy()
     theta = 1.0
     it = 0
@@ -260,11 +358,7 @@ def solve_contacts(model: Model, state: State, free: State, contacts: Contacts,
         p, p_new = p_new, p
         if res < opt.tolerance:
             break
-    dv = (Wf.T @ p).reshape(nd, 6)
-    vel[bodies] += dv[:, :3]
-    angvel[bodies] += dv[:, 3:]
-    imp[ci] = p.reshape(K, 3)
-    return SolveResult(vel, angvel, imp, it, res)
+    return p, it, res
 
 
 def _soft_impact_rows(u: np.ndarray, r: np.ndarray, dimp: np.ndarray, Rn: np.ndarray, dt: float, bb: float,

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from collections.abc import Mapping
 from pathlib import Path
 from types import MappingProxyType
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -38,6 +39,11 @@ from pipeline.errors import UserError
 from pipeline.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, encode_image, read_json
 from pipeline.seeding import item_rng
 from pipeline.synthscan.writers import LAYOUTS, encode, frame_files, frame_id, ply_bytes, write_frame, write_static
+
+if TYPE_CHECKING:
+    from pipeline.synthscan.degrade import CameraModel
+    from pipeline.synthscan.render import PhotoRenderer
+    from pipeline.synthscan.room import MeshData, Room
 
 log = logging.getLogger(__name__)
 
@@ -172,6 +178,10 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
               camera=None) -> Path:
     """Write a synthetic room scan in ``layout`` to ``out_dir``, with its ground truth.
 
+    The steps: the room and its baked light (:func:`bake_light`, from the seed only), the cameras and
+    trajectory (:func:`plan_shots`), the frames (:func:`_write_frames`), then the scanner's mesh, the
+    layout's static files and the ground truth.
+
     Parameters
     ----------
     out_dir : folder to write (created; must be empty or hold an earlier make-scan output, which is replaced)
@@ -189,11 +199,9 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
     -------
     Path of the scan folder (``out_dir``).
     """
-    from pipeline.synthscan import degrade, lighting
     from pipeline.synthscan.render import make_photo_renderer
     from pipeline.synthscan.room import make_room, tessellate
     from pipeline.synthscan.scanmesh import make_scan_mesh
-    from pipeline.synthscan.trajectory import exposure_path, walk
 
     _check_args(layout, seed, width, height, frames)
     if camera is not None and photo_mode != "traced":
@@ -206,6 +214,68 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
     # Scene: depends on the seed only.
     room = make_room(item_rng(seed, "synthscan", "room"))
     mesh = tessellate(room, LIGHT_CELL)
+    vertex_radiance, exposure = bake_light(room, mesh)
+    shots = plan_shots(room, layout, seed, width, height, frames)
+    cams, poses, T_wc = shots.cams, shots.poses, shots.T_wc
+
+    renderer = make_photo_renderer(photo_mode, room, mesh, vertex_radiance)
+    try:
+        written = _write_frames(out, renderer, shots, seed, camera, thumbs=contact_sheet is not None)
+    finally:
+        renderer.close()
+    files = list(written.files)
+
+    # Scanner's mesh and the layout's static files.
+    smesh = make_scan_mesh(room, mesh, vertex_radiance, item_rng(seed, "synthscan", "scan_mesh"),
+                           cell=0.04 if width * height >= 320 * 240 else 0.08)
+    sverts = transform_points(T_wc, smesh.vertices)
+    files += write_static(out, layout, scene=shots.scene, K=cams.K, width=width, height=height,
+                          depth_K=cams.depth_K, depth_width=cams.depth_width, depth_height=cams.depth_height,
+                          up_w=shots.up_w, poses=poses, pose_valid=shots.pose_valid, mesh_vertices=sverts,
+                          mesh_faces=smesh.faces, mesh_colors=smesh.colors)
+
+    files += _write_truth(out, room, mesh, smesh, sverts, T_wc, exposure)
+    atomic_save_npz(out / GT_DIR / "cameras.npz", K=cams.K, depth_K=cams.depth_K, T_c2w=poses,
+                    pose_valid=shots.pose_valid, blur_kind=shots.kinds, blur_strength_px=written.strengths,
+                    frame_ids=np.array([frame_id(layout, i) for i in range(frames)], np.int64))
+    files.append(f"{GT_DIR}/cameras.npz")
+
+    if contact_sheet is not None:
+        from pipeline.synthscan.contact import contact_sheet as make_sheet
+
+        labels = [{"index": d["index"], "blur": d["blur"]["kind"], "strength_px": d["blur"]["strength_px"],
+                   "pose_valid": d["pose_valid"]} for d in written.frame_docs]
+        sheet = make_sheet(list(written.thumbs), labels)
+        atomic_write_bytes(Path(contact_sheet), encode_image(Path(contact_sheet).with_suffix(".png"), sheet))
+
+    doc = _scan_doc(shots, seed=seed, photo_mode=photo_mode, exposure=exposure, frame_docs=written.frame_docs,
+                    files=files)
+    if camera is not None:
+        doc["camera"] = camera.to_dict()
+    atomic_write_json(out / GT_DIR / "scan.json", doc)
+    log.info("wrote %s scan with %d frames to %s", layout, frames, out)
+    return out
+
+
+def bake_light(room: Room, mesh: MeshData) -> tuple[np.ndarray, float]:
+    """The raster photos' light baked on the true mesh's vertices, and the exposure that sets it.
+
+    Exact polygon irradiance per light with soft shadows, plus the ambient radiance times ambient
+    occlusion; the exposure puts the median non-emitting vertex at 0.5; lamp parts show their own
+    radiance.
+
+    Parameters
+    ----------
+    room : :class:`~pipeline.synthscan.room.Room`
+    mesh : its tessellation (:func:`~pipeline.synthscan.room.tessellate`)
+
+    Returns
+    -------
+    vertex_radiance : (V, 3) float32, outgoing radiance per unit albedo times the exposure
+    exposure : float, radiance-to-sensor scale
+    """
+    from pipeline.synthscan import lighting
+
     shadows = lighting.EmbreeShadows(mesh.vertices, mesh.faces, samples=3)
     E = lighting.direct_irradiance(mesh.vertices, mesh.normals.astype(np.float64), room.lights, shadows)
     vmat = room.quad_material[mesh.vertex_quad]
@@ -219,8 +289,31 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
         if part.name in lamp_L:
             sel = room.quad_part[mesh.vertex_quad] == q
             vertex_radiance[sel] = (lamp_L[part.name] * exposure).astype(np.float32)
+    return vertex_radiance, exposure
 
-    # Cameras and trajectory.
+
+@dataclass(frozen=True)
+class Shots:
+    """The cameras, poses and per-frame choices of a scan (:func:`plan_shots`)."""
+
+    layout: str
+    width: int                # colour image size, pixels
+    height: int
+    cams: Cameras
+    poses_canon: np.ndarray   # (F, 4, 4) float64, T_c2w in the room's canonical frame (z up), metres
+    poses: np.ndarray         # (F, 4, 4) float64, T_c2w in the layout's world frame (written to the files)
+    T_wc: np.ndarray          # (4, 4) float64, layout world from canonical
+    up_w: np.ndarray          # (3,) float64, up in the layout's world frame
+    kinds: np.ndarray         # (F,) int8, blur kind code (BLUR_CODES)
+    pose_valid: np.ndarray    # (F,) bool
+    scene: str                # the scene's name in the layout
+
+
+def plan_shots(room: Room, layout: str, seed: int, width: int, height: int, frames: int) -> Shots:
+    """The trajectory through ``room``, the layout's cameras, which frames blur and lose tracking, and the
+    layout's world frame; each from its own generator of ``seed``."""
+    from pipeline.synthscan.trajectory import walk
+
     poses_canon = walk(room, item_rng(seed, "synthscan", "trajectory", str(frames)), frames)
     cams = layout_cameras(layout, width, height, item_rng(seed, "synthscan", "cameras", layout, f"{width}x{height}"))
     kinds, pose_valid = _choose_frames(item_rng(seed, "synthscan", "frames", layout, str(frames)), frames, layout)
@@ -230,92 +323,110 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
         poses[0] = np.eye(4)
     up_w = T_wc[:3, :3] @ np.array([0.0, 0.0, 1.0])
     scene = f"scene{seed % 10000:04d}_00" if layout == "scannet" else f"synth{seed}"
+    return Shots(layout=layout, width=width, height=height, cams=cams, poses_canon=poses_canon, poses=poses,
+                 T_wc=T_wc, up_w=up_w, kinds=kinds, pose_valid=pose_valid, scene=scene)
 
-    renderer = make_photo_renderer(photo_mode, room, mesh, vertex_radiance)
+
+@dataclass(frozen=True)
+class FramesWritten:
+    """What :func:`_write_frames` wrote and measured."""
+
+    files: tuple[str, ...]            # paths written, relative to the scan folder
+    frame_docs: tuple[dict, ...]      # per frame: the ``frames_info`` entry of scan.json
+    strengths: np.ndarray             # (F,) float64, blur strength, pixels
+    thumbs: tuple[np.ndarray, ...]    # contact-sheet thumbnails (empty when not asked)
+
+
+def _write_frames(out: Path, renderer: PhotoRenderer, shots: Shots, seed: int, camera: CameraModel | None, *,
+                  thumbs: bool) -> FramesWritten:
+    """Render, degrade and write every frame (photo, depth, pose, ground-truth depth) in the layout.
+
+    Each frame draws from its own generator: the photo's blur, then the camera's noise, then the depth
+    sensor's (:func:`_frame_photo`, :func:`~pipeline.synthscan.degrade.camera_photo`,
+    :func:`~pipeline.synthscan.degrade.degrade_depth`).
+    """
+    import cv2
+
+    from pipeline.synthscan import degrade
+
+    layout, width, height, cams, poses = shots.layout, shots.width, shots.height, shots.cams, shots.poses
+    frames = len(shots.poses_canon)
     files: list[str] = []
     frame_docs: list[dict] = []
     strengths = np.zeros(frames)
-    thumbs: list[np.ndarray] = []
+    thumb_list: list[np.ndarray] = []
     tw = 160
     th = max(1, round(height * tw / width))
-    try:
-        import cv2
+    for i in range(frames):
+        rng = item_rng(seed, "synthscan", "frame", layout, str(i))
+        T = shots.poses_canon[i]
+        img, blur = _frame_photo(renderer, cams, T, int(shots.kinds[i]), rng, width, height)
+        strengths[i] = blur["strength_px"]
+        photo = degrade.camera_photo(img, camera, rng)
+        true_depth = renderer.render_depth(Camera(cams.depth_K, T, cams.depth_width, cams.depth_height))
+        depth_mm = degrade.degrade_depth(true_depth, cams.depth_K, rng)
+        files += write_frame(out, layout, i, photo, depth_mm, poses[i], bool(shots.pose_valid[i]))
+        gt_rel = f"{GT_DIR}/depth/frame-{i:06d}.png"
+        gt_depth = np.clip(np.round(true_depth.astype(np.float64) / GT_DEPTH_SCALE), 0, 65535).astype(np.uint16)
+        atomic_write_bytes(out / gt_rel, encode(gt_rel, gt_depth))
+        files.append(gt_rel)
+        ff = frame_files(layout, i)
+        frame_docs.append({"index": i, "frame_id": frame_id(layout, i), "color": ff.color, "depth": ff.depth,
+                           "pose": ff.pose, "gt_depth": gt_rel, "pose_valid": bool(shots.pose_valid[i]),
+                           "T_c2w": poses[i].tolist(), "blur": blur})
+        if thumbs:
+            thumb_list.append(cv2.resize(photo, (tw, th), interpolation=cv2.INTER_AREA))
+        log.debug("frame %d/%d done (%s)", i + 1, frames, blur["kind"])
+    return FramesWritten(files=tuple(files), frame_docs=tuple(frame_docs), strengths=strengths,
+                         thumbs=tuple(thumb_list))
 
-        for i in range(frames):
-            rng = item_rng(seed, "synthscan", "frame", layout, str(i))
-            T = poses_canon[i]
-            kind = int(kinds[i])
-            blur: dict = {"kind": "none", "strength_px": 0.0}
-            if kind == BLUR_CODES["motion"]:
-                target = rng.uniform(6.0, 18.0) * width / 640.0
-                psi = rng.uniform(0, 2 * math.pi)
-                mag = target / cams.K[0, 0]
-                omega = mag * np.array([math.sin(psi), math.cos(psi), rng.uniform(-0.3, 0.3)])
-                vel = rng.normal(0.0, 0.01, 3)
-                n_sub = int(np.clip(math.ceil(target / 1.5), 6, 16))
-                subs = exposure_path(T, omega, vel, n_sub)
-                img = np.zeros((height, width, 3), np.float32)
-                for S in subs:
-                    img += renderer.render_color(Camera(cams.K, S, width, height))
-                img /= n_sub
-                depth_c = renderer.render_depth(Camera(cams.K, T, width, height))
-                strength = _motion_extent(depth_c, cams.K, T, subs[0], subs[-1])
-                blur = {"kind": "motion", "strength_px": round(strength, 4), "sub_frames": n_sub,
-                        "omega_rad": omega.tolist(), "velocity_m": vel.tolist()}
-            else:
-                img = renderer.render_color(Camera(cams.K, T, width, height))
-                if kind == BLUR_CODES["defocus"]:
-                    r = round(float(rng.uniform(2.0, 5.0) * width / 640.0), 4)
-                    img = degrade.defocus(img, r)
-                    blur = {"kind": "defocus", "strength_px": r, "psf": "disk", "radius_px": r}
-            strengths[i] = blur["strength_px"]
-            photo = degrade.camera_photo(img, camera, rng)
-            true_depth = renderer.render_depth(Camera(cams.depth_K, T, cams.depth_width, cams.depth_height))
-            depth_mm = degrade.degrade_depth(true_depth, cams.depth_K, rng)
-            files += write_frame(out, layout, i, photo, depth_mm, poses[i], bool(pose_valid[i]))
-            gt_rel = f"{GT_DIR}/depth/frame-{i:06d}.png"
-            gt_depth = np.clip(np.round(true_depth.astype(np.float64) / GT_DEPTH_SCALE), 0, 65535).astype(np.uint16)
-            atomic_write_bytes(out / gt_rel, encode(gt_rel, gt_depth))
-            files.append(gt_rel)
-            ff = frame_files(layout, i)
-            frame_docs.append({"index": i, "frame_id": frame_id(layout, i), "color": ff.color, "depth": ff.depth,
-                               "pose": ff.pose, "gt_depth": gt_rel, "pose_valid": bool(pose_valid[i]),
-                               "T_c2w": poses[i].tolist(), "blur": blur})
-            if contact_sheet is not None:
-                thumbs.append(cv2.resize(photo, (tw, th), interpolation=cv2.INTER_AREA))
-            log.debug("frame %d/%d done (%s)", i + 1, frames, blur["kind"])
-    finally:
-        renderer.close()
 
-    # Scanner's mesh and the layout's static files.
-    smesh = make_scan_mesh(room, mesh, vertex_radiance, item_rng(seed, "synthscan", "scan_mesh"),
-                           cell=0.04 if width * height >= 320 * 240 else 0.08)
-    sverts = transform_points(T_wc, smesh.vertices)
-    files += write_static(out, layout, scene=scene, K=cams.K, width=width, height=height, depth_K=cams.depth_K,
-                          depth_width=cams.depth_width, depth_height=cams.depth_height, up_w=up_w, poses=poses,
-                          pose_valid=pose_valid, mesh_vertices=sverts, mesh_faces=smesh.faces,
-                          mesh_colors=smesh.colors)
+def _frame_photo(renderer: PhotoRenderer, cams: Cameras, T: np.ndarray, kind: int, rng: np.random.Generator, width: int,
+                 height: int) -> tuple[np.ndarray, dict]:
+    """The frame's linear colour image (H, W, 3) float32 before the camera's noise, and its blur label.
 
-    files += _write_truth(out, room, mesh, smesh, sverts, T_wc, exposure)
-    atomic_save_npz(out / GT_DIR / "cameras.npz", K=cams.K, depth_K=cams.depth_K, T_c2w=poses,
-                    pose_valid=pose_valid, blur_kind=kinds, blur_strength_px=strengths,
-                    frame_ids=np.array([frame_id(layout, i) for i in range(frames)], np.int64))
-    files.append(f"{GT_DIR}/cameras.npz")
+    Motion blur averages sub-frames rendered along a random exposure path (its strength is measured on
+    the depth at ``T``); defocus convolves with a disk of random radius; both scale with the width.
+    """
+    from pipeline.synthscan import degrade
+    from pipeline.synthscan.trajectory import exposure_path
 
-    if contact_sheet is not None:
-        from pipeline.synthscan.contact import contact_sheet as make_sheet
+    blur: dict = {"kind": "none", "strength_px": 0.0}
+    if kind == BLUR_CODES["motion"]:
+        target = rng.uniform(6.0, 18.0) * width / 640.0
+        psi = rng.uniform(0, 2 * math.pi)
+        mag = target / cams.K[0, 0]
+        omega = mag * np.array([math.sin(psi), math.cos(psi), rng.uniform(-0.3, 0.3)])
+        vel = rng.normal(0.0, 0.01, 3)
+        n_sub = int(np.clip(math.ceil(target / 1.5), 6, 16))
+        subs = exposure_path(T, omega, vel, n_sub)
+        img = np.zeros((height, width, 3), np.float32)
+        for S in subs:
+            img += renderer.render_color(Camera(cams.K, S, width, height))
+        img /= n_sub
+        depth_c = renderer.render_depth(Camera(cams.K, T, width, height))
+        strength = _motion_extent(depth_c, cams.K, T, subs[0], subs[-1])
+        blur = {"kind": "motion", "strength_px": round(strength, 4), "sub_frames": n_sub,
+                "omega_rad": omega.tolist(), "velocity_m": vel.tolist()}
+    else:
+        img = renderer.render_color(Camera(cams.K, T, width, height))
+        if kind == BLUR_CODES["defocus"]:
+            r = round(float(rng.uniform(2.0, 5.0) * width / 640.0), 4)
+            img = degrade.defocus(img, r)
+            blur = {"kind": "defocus", "strength_px": r, "psf": "disk", "radius_px": r}
+    return img, blur
 
-        labels = [{"index": d["index"], "blur": d["blur"]["kind"], "strength_px": d["blur"]["strength_px"],
-                   "pose_valid": d["pose_valid"]} for d in frame_docs]
-        sheet = make_sheet(thumbs, labels)
-        atomic_write_bytes(Path(contact_sheet), encode_image(Path(contact_sheet).with_suffix(".png"), sheet))
 
-    doc = {
-        "generator": GENERATOR, "version": VERSION, "layout": layout, "seed": seed, "scene": scene,
-        "photo_mode": photo_mode, "width": width, "height": height, "frames": frames,
+def _scan_doc(shots: Shots, *, seed: int, photo_mode: str, exposure: float, frame_docs: tuple[dict, ...],
+              files: list[str]) -> dict:
+    """The ``ground_truth/scan.json`` document (without the optional ``camera``)."""
+    cams = shots.cams
+    return {
+        "generator": GENERATOR, "version": VERSION, "layout": shots.layout, "seed": seed, "scene": shots.scene,
+        "photo_mode": photo_mode, "width": shots.width, "height": shots.height, "frames": len(shots.poses),
         "K": cams.K.tolist(), "depth_K": cams.depth_K.tolist(), "depth_width": cams.depth_width,
         "depth_height": cams.depth_height, "depth_scale": 0.001, "gt_depth_scale": GT_DEPTH_SCALE,
-        "depth_registered": True, "up_w": up_w.tolist(), "T_world_from_canonical": T_wc.tolist(),
+        "depth_registered": True, "up_w": shots.up_w.tolist(), "T_world_from_canonical": shots.T_wc.tolist(),
         "exposure": exposure, "conventions": {
             "K": "OpenCV: pixel (u, v) centred at integer coordinates; transforms.json stores cx, cy + 0.5 "
                  "(nerfstudio centres pixels at i + 0.5)",
@@ -326,15 +437,10 @@ def make_scan(out_dir: str | Path, *, layout: str, seed: int, width: int = 640, 
             "invalid_pose": "pose_valid false: the layout's pose file says tracking was lost (ScanNet -inf); "
                             "ingest must skip these frames",
         },
-        "num_valid_poses": int(pose_valid.sum()),
-        "frames_info": frame_docs,
+        "num_valid_poses": int(shots.pose_valid.sum()),
+        "frames_info": list(frame_docs),
         "files": sorted(files + [f"{GT_DIR}/scan.json"]),
     }
-    if camera is not None:
-        doc["camera"] = camera.to_dict()
-    atomic_write_json(out / GT_DIR / "scan.json", doc)
-    log.info("wrote %s scan with %d frames to %s", layout, frames, out)
-    return out
 
 
 def _write_truth(out: Path, room, mesh, smesh, sverts: np.ndarray, T_wc: np.ndarray, exposure: float) -> list[str]:

@@ -165,6 +165,10 @@ def _materials(rng: np.random.Generator) -> tuple[Material, ...]:
 def make_room(rng: np.random.Generator, *, window: bool = True, texture_size: int = 256) -> Room:
     """Build the procedural room; every dimension and colour is drawn from ``rng``.
 
+    The steps draw from ``rng`` in this order (the order fixes the room of a seed): materials and
+    textures, the size, :func:`_add_shell`, :func:`_add_table`, :func:`_add_chair`, :func:`_add_shelf`,
+    :func:`_add_floor_box`, :func:`_add_lights`.
+
     Parameters
     ----------
     rng : numpy Generator (from :func:`pipeline.seeding.item_rng`)
@@ -181,8 +185,29 @@ def make_room(rng: np.random.Generator, *, window: bool = True, texture_size: in
     Y = float(rng.uniform(3.2, 3.6))
     Z = float(rng.uniform(2.4, 2.6))
     b = _Builder()
-    ex, ey, ez = np.eye(3)
+    door = _add_shell(b, M, rng, X, Y, Z)
+    table = _add_table(b, M, rng, X, Y)
+    _add_chair(b, M, rng, table)
+    _add_shelf(b, M, rng, X, Y)
+    _add_floor_box(b, M, rng, X)
+    lights = _add_lights(b, M, rng, X, Y, Z, window)
 
+    margin = 0.6
+    return Room(
+        size=np.array([X, Y, Z]),
+        quad_origin=np.array(b.o), quad_a=np.array(b.a), quad_b=np.array(b.b),
+        quad_material=np.array(b.m, np.int32), quad_part=np.array(b.p, np.int32),
+        parts=tuple(b.parts), materials=mats, textures=textures, lights=tuple(lights),
+        ambient=0.25, door=door,
+        walkable=np.array([margin, X - margin, margin, Y - margin]),
+    )
+
+
+def _add_shell(b: _Builder, M: dict[str, int], rng: np.random.Generator, X: float, Y: float, Z: float
+               ) -> np.ndarray:
+    """Add the room shell (inward-facing, a doorway in wall y = 0) and the corridor behind the doorway to
+    ``b``. Returns the door ``(x0, x1, height, wall thickness)``, metres."""
+    ex, ey, ez = np.eye(3)
     # Room shell, inward-facing. Doorway in wall y = 0.
     t = 0.10                                   # wall thickness at the doorway, metres
     dx0 = float(rng.uniform(0.5, 0.9))
@@ -217,8 +242,22 @@ def make_room(rng: np.random.Generator, *, window: bool = True, texture_size: in
         ((dx1, cy1, 0), (cx1 - dx1) * ex, (dh + 0.3) * ez),             # right of door
         ((dx0, cy1, dh), (dx1 - dx0) * ex, 0.3 * ez),                   # above door
     ], thickness=0.1)
+    return np.array([dx0, dx1, dh, t])
 
-    # Table with thin legs.
+
+@dataclass(frozen=True)
+class _Table:
+    """Where :func:`_add_table` put the table (the chair stands beside it)."""
+
+    x: float            # m, centre
+    y: float
+    yaw: float          # rad about z
+    depth: float        # m
+    Rz: np.ndarray      # (2, 2) float64, rotation by yaw
+
+
+def _add_table(b: _Builder, M: dict[str, int], rng: np.random.Generator, X: float, Y: float) -> _Table:
+    """Add a table with thin legs near the middle of the room to ``b``."""
     tx, ty = X * float(rng.uniform(0.45, 0.6)), Y * float(rng.uniform(0.45, 0.6))
     tyaw = float(rng.uniform(-0.3, 0.3))
     tw, td, th = 1.2, 0.7, 0.74
@@ -228,8 +267,12 @@ def make_room(rng: np.random.Generator, *, window: bool = True, texture_size: in
     for i, (sx, sy) in enumerate([(-1, -1), (1, -1), (1, 1), (-1, 1)]):
         off = Rz @ np.array([sx * (tw / 2 - 0.06), sy * (td / 2 - 0.06)])
         b.box(f"table_leg_{i}", M["table_wood"], (tx + off[0], ty + off[1], (th - 0.04) / 2), (leg, leg, th - 0.04), tyaw)
+    return _Table(tx, ty, tyaw, td, Rz)
 
-    # Chair with thin legs, beside the table.
+
+def _add_chair(b: _Builder, M: dict[str, int], rng: np.random.Generator, table: _Table) -> None:
+    """Add a chair with thin legs beside ``table`` to ``b``."""
+    tx, ty, tyaw, td, Rz = table.x, table.y, table.yaw, table.depth, table.Rz
     cyaw = tyaw + float(rng.uniform(-0.4, 0.4))
     side = 1 if rng.random() < 0.5 else -1
     coff = Rz @ np.array([0.0, side * (td / 2 + 0.35)])
@@ -247,7 +290,9 @@ def make_room(rng: np.random.Generator, *, window: bool = True, texture_size: in
     off = Rc @ np.array([0.0, side * (sw / 2 - 0.0125)])
     b.box("chair_back", M["chair_wood"], (chx + off[0], chy + off[1], sh + 0.34), (sw - 0.06, 0.018, 0.16), cyaw)
 
-    # Shelf against wall y = Y: two sides, boards, one of them thin.
+
+def _add_shelf(b: _Builder, M: dict[str, int], rng: np.random.Generator, X: float, Y: float) -> None:
+    """Add a shelf against wall y = Y to ``b``: two sides and four boards, one of them thin."""
     shw, shd, shh = 0.8, 0.3, 1.6
     sx0 = X * float(rng.uniform(0.15, 0.55))
     scy = Y - shd / 2 - 0.01
@@ -258,13 +303,19 @@ def make_room(rng: np.random.Generator, *, window: bool = True, texture_size: in
         thick = 0.008 if k == thin_board else 0.02
         b.box(f"shelf_board_{k}", M["shelf_wood"], (sx0 + shw / 2, scy, z), (shw - 0.04, shd - 0.01, thick))
 
-    # A box on the floor, in a corner region away from the door.
+
+def _add_floor_box(b: _Builder, M: dict[str, int], rng: np.random.Generator, X: float) -> None:
+    """Add a cardboard box on the floor to ``b``, in a corner region away from the door."""
     bw, bd, bh = float(rng.uniform(0.35, 0.5)), float(rng.uniform(0.25, 0.35)), float(rng.uniform(0.25, 0.35))
     bx = X - 0.5 - float(rng.uniform(0.0, 0.3))
     by = 0.5 + float(rng.uniform(0.0, 0.4))
     b.box("box", M["box_cardboard"], (bx, by, bh / 2), (bw, bd, bh), float(rng.uniform(-0.6, 0.6)))
 
-    # Lights: ceiling panels (emitting down) and a window on wall x = X (emitting -x).
+
+def _add_lights(b: _Builder, M: dict[str, int], rng: np.random.Generator, X: float, Y: float, Z: float,
+                window: bool) -> list[Light]:
+    """Add the lights to ``b``: two ceiling panels (emitting down) and, with ``window``, a window on wall
+    x = X (emitting -x). Returns them as :class:`Light`."""
     lights: list[Light] = []
     n_lamps = 2
     L_lamp = float(rng.uniform(9.0, 12.0))
@@ -286,16 +337,7 @@ def make_room(rng: np.random.Generator, *, window: bool = True, texture_size: in
         b.part("window", M["window"], [(corners[0], corners[1] - corners[0], corners[3] - corners[0])], thickness=0.0)
         lights.append(Light("window", "window", corners, np.array([-1.0, 0.0, 0.0]),
                             np.array([0.85, 0.92, 1.0]) * float(rng.uniform(14.0, 20.0))))
-
-    margin = 0.6
-    return Room(
-        size=np.array([X, Y, Z]),
-        quad_origin=np.array(b.o), quad_a=np.array(b.a), quad_b=np.array(b.b),
-        quad_material=np.array(b.m, np.int32), quad_part=np.array(b.p, np.int32),
-        parts=tuple(b.parts), materials=mats, textures=textures, lights=tuple(lights),
-        ambient=0.25, door=np.array([dx0, dx1, dh, t]),
-        walkable=np.array([margin, X - margin, margin, Y - margin]),
-    )
+    return lights
 
 
 def tessellate(room: Room, cell: float, quads: np.ndarray | None = None) -> MeshData:

@@ -235,6 +235,59 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
     rf = np.asarray(room_faces, np.int64).reshape(-1, 3)
     nrv, nrt = rv.shape[0], rf.shape[0]
     emits = lighting in ("scan", "fit")
+    room_lin, bright = _room_linear(rv, rf, room_colors, room_linear_radiance, radiance_scale, light_threshold,
+                                    light_gain)
+    soup = _stack(rv, rf, room_lin, emits, objects)
+    V, F = soup.vertices, soup.faces
+    E = soup.emission.copy()
+    boosted = np.zeros(nrv, bool)
+    if lighting == "scan":
+        E[:nrv], boosted = boost_lights(E[:nrv], rf, bright, None if room_linear_radiance is not None else light_vertices,
+                                        light_gain=light_gain, radiance_scale=radiance_scale)
+    light_mask = np.zeros(len(F), bool)
+    if lighting == "fit":
+        light_mask[:nrt] = np.asarray(room_lights.light_tri, bool)
+    if boosted.any():
+        # every triangle touching a boosted vertex carries boosted emission: sample them all explicitly
+        light_mask[:nrt] = boosted[rf].any(axis=1)
+    area = build_area_lights(V, F, E, light_mask)
+    if lighting == "published" and nrv:
+        pts = published_lights(rv, np.array([0.0, 0.0, 1.0]) if up is None else up, power=published_power)
+    else:
+        pts = PointLights(position=np.zeros((0, 3)), intensity=np.zeros((0, 3)))
+    if env_radiance is None:
+        env = mean_radiance(rv, rf, room_lin) if emits else np.zeros(3, np.float32)
+    else:
+        env = np.asarray(env_radiance, np.float32).reshape(3)
+    ext = V.max(axis=0) - V.min(axis=0) if len(V) else np.ones(3)
+    tri_inst_all = soup.tri_inst
+    alb_all = soup.albedo
+    p = V[F]
+    tn = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    tn /= np.maximum(np.linalg.norm(tn, axis=1, keepdims=True), 1e-30)
+    tri_emits = (E[F].max(axis=(1, 2)) > 0) if len(F) else np.zeros(0, bool)
+    tri_scatters = (tri_inst_all >= 1) | ((alb_all[F].max(axis=(1, 2)) > 0) if len(F) else np.zeros(0, bool))
+    tri_side = _seen_side(room_lights, len(F)) if lighting == "fit" else None
+    log.debug("trace scene: %d triangles (%d room), %d area lights, %d point lights",
+              len(F), nrt, area.count, pts.count)
+    return TraceScene(vertices=V, faces=F, normals=soup.normals,
+                      tri_inst=tri_inst_all, albedo=alb_all.astype(np.float32),
+                      emission=E, uv=soup.uv, metallic=soup.metallic,
+                      roughness=soup.roughness, specular=soup.specular,
+                      textures=soup.textures, area_lights=area, point_lights=pts,
+                      env_radiance=env, num_room_tris=nrt, scale=float(np.max(ext)),
+                      intersector=EmbreeIntersector(V, F), tri_normal=tn.astype(np.float32),
+                      tri_emits=tri_emits, tri_scatters=tri_scatters,
+                      env_map=(None if env_map is None or lighting != "scan" else np.asarray(env_map, np.float32)),
+                      up=None if up is None else np.asarray(up, np.float64), spheres=soup.spheres, tri_side=tri_side)
+
+
+def _room_linear(rv: np.ndarray, rf: np.ndarray, room_colors: np.ndarray | None,
+                 room_linear_radiance: np.ndarray | None, radiance_scale: float, light_threshold: int,
+                 light_gain: float) -> tuple[np.ndarray, np.ndarray]:
+    """The room's linear colours (V, 3) float32 (radiance or albedo, by the lighting mode) and its
+    triangles (T,) bool found clipped in the colours (lights to boost; none for given radiance)."""
+    nrv, nrt = rv.shape[0], rf.shape[0]
     if room_linear_radiance is not None:
         room_lin = np.asarray(room_linear_radiance, np.float32).reshape(-1, 3)
         bright = np.zeros(nrt, bool)
@@ -244,7 +297,32 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
         room_lin = srgb_to_linear(cols) * np.float32(radiance_scale)
         bright = (detect_bright_triangles(cols, rf, threshold=light_threshold) if light_gain > 0
                   else np.zeros(nrt, bool))
+    return room_lin, bright
 
+
+@dataclass(frozen=True)
+class _Soup:
+    """Room and object instances as one triangle soup (:func:`_stack`); fields as in :class:`TraceScene`."""
+
+    vertices: np.ndarray      # (V, 3) float32
+    faces: np.ndarray         # (T, 3) int32
+    normals: np.ndarray       # (V, 3) float32
+    tri_inst: np.ndarray      # (T,) int32
+    albedo: np.ndarray        # (V, 3) linear base colour (float32 once cast)
+    emission: np.ndarray      # (V, 3) float32, before the lights are boosted
+    uv: np.ndarray            # (V, 2) float32
+    metallic: np.ndarray      # (N + 1,) float32
+    roughness: np.ndarray     # (N + 1,) float32
+    specular: np.ndarray      # (N + 1,) float32
+    textures: Textures
+    spheres: tuple[np.ndarray, np.ndarray]  # instances' bounding spheres: centres (N, 3), radii (N,)
+
+
+def _stack(rv: np.ndarray, rf: np.ndarray, room_lin: np.ndarray, emits: bool, objects: list[ObjectInstance]
+           ) -> _Soup:
+    """The room (emitting ``room_lin`` when ``emits``, else reflecting it) and the objects, in placement order,
+    as one soup; instance ``k`` gets ``tri_inst = k + 1``."""
+    nrv, nrt = rv.shape[0], rf.shape[0]
     verts = [rv]
     faces = [rf]
     norms = [vertex_normals(rv, rf) if nrt else np.zeros((nrv, 3), np.float32)]
@@ -276,52 +354,26 @@ def build_scene(room_vertices: np.ndarray, room_faces: np.ndarray, room_colors: 
     # the instances' bounding spheres, once per scene: the shadow pass and the object tracer ask every frame
     ends = np.cumsum([len(v) for v in verts])
     spheres = _bounding_spheres([V[a:b] for a, b in zip(ends[:-1], ends[1:])])
-    E = np.concatenate(emis).astype(np.float32)
-    boosted = np.zeros(nrv, bool)
-    if lighting == "scan":
-        E[:nrv], boosted = boost_lights(E[:nrv], rf, bright, None if room_linear_radiance is not None else light_vertices,
-                                        light_gain=light_gain, radiance_scale=radiance_scale)
-    light_mask = np.zeros(len(F), bool)
-    if lighting == "fit":
-        light_mask[:nrt] = np.asarray(room_lights.light_tri, bool)
-    if boosted.any():
-        # every triangle touching a boosted vertex carries boosted emission: sample them all explicitly
-        light_mask[:nrt] = boosted[rf].any(axis=1)
-    area = build_area_lights(V, F, E, light_mask)
-    if lighting == "published" and nrv:
-        pts = published_lights(rv, np.array([0.0, 0.0, 1.0]) if up is None else up, power=published_power)
-    else:
-        pts = PointLights(position=np.zeros((0, 3)), intensity=np.zeros((0, 3)))
-    if env_radiance is None:
-        env = mean_radiance(rv, rf, room_lin) if emits else np.zeros(3, np.float32)
-    else:
-        env = np.asarray(env_radiance, np.float32).reshape(3)
-    ext = V.max(axis=0) - V.min(axis=0) if len(V) else np.ones(3)
-    tri_inst_all = np.concatenate(tri_inst)
-    alb_all = np.concatenate(albedo)
-    p = V[F]
-    tn = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    tn /= np.maximum(np.linalg.norm(tn, axis=1, keepdims=True), 1e-30)
-    tri_emits = (E[F].max(axis=(1, 2)) > 0) if len(F) else np.zeros(0, bool)
-    tri_scatters = (tri_inst_all >= 1) | ((alb_all[F].max(axis=(1, 2)) > 0) if len(F) else np.zeros(0, bool))
-    tri_side = None
-    if lighting == "fit" and int(room_lights.summary.get("seen_side", 0)) != 0:
-        # the scan mesh's triangles send light to the side the cameras saw (as in the fit's gathers); the
-        # sampled lights (clipped regions, lamps) and the closing box stay two-sided, as the lights are
-        # sampled both ways (next-event estimation and a hit must agree on what a light sends)
-        tri_side = np.zeros(len(F), np.int8)
-        nm = int(room_lights.num_mesh_tris)
-        tri_side[:nm] = int(room_lights.summary["seen_side"])
-        tri_side[:nm][np.asarray(room_lights.light_tri, bool)[:nm]] = 0
-    log.debug("trace scene: %d triangles (%d room), %d area lights, %d point lights",
-              len(F), nrt, area.count, pts.count)
-    return TraceScene(vertices=V, faces=F, normals=np.concatenate(norms).astype(np.float32),
-                      tri_inst=tri_inst_all, albedo=alb_all.astype(np.float32),
-                      emission=E, uv=np.concatenate(uvs), metallic=np.asarray(metallic, np.float32),
-                      roughness=np.asarray(roughness, np.float32), specular=np.asarray(specular, np.float32),
-                      textures=Textures(tuple(tex_inst), tuple(tex_img)), area_lights=area, point_lights=pts,
-                      env_radiance=env, num_room_tris=nrt, scale=float(np.max(ext)),
-                      intersector=EmbreeIntersector(V, F), tri_normal=tn.astype(np.float32),
-                      tri_emits=tri_emits, tri_scatters=tri_scatters,
-                      env_map=(None if env_map is None or lighting != "scan" else np.asarray(env_map, np.float32)),
-                      up=None if up is None else np.asarray(up, np.float64), spheres=spheres, tri_side=tri_side)
+    return _Soup(vertices=V, faces=F, normals=np.concatenate(norms).astype(np.float32),
+                 tri_inst=np.concatenate(tri_inst), albedo=np.concatenate(albedo),
+                 emission=np.concatenate(emis).astype(np.float32), uv=np.concatenate(uvs),
+                 metallic=np.asarray(metallic, np.float32), roughness=np.asarray(roughness, np.float32),
+                 specular=np.asarray(specular, np.float32), textures=Textures(tuple(tex_inst), tuple(tex_img)),
+                 spheres=spheres)
+
+
+def _seen_side(room_lights, n_tris: int) -> np.ndarray | None:
+    """(T,) int8 side each triangle sends light to in fit lighting (see ``TraceScene.tri_side``), or None
+    when the fit gives no side.
+
+    The scan mesh's triangles send light to the side the cameras saw (as in the fit's gathers); the
+    sampled lights (clipped regions, lamps) and the closing box stay two-sided, as the lights are
+    sampled both ways (next-event estimation and a hit must agree on what a light sends).
+    """
+    if int(room_lights.summary.get("seen_side", 0)) == 0:
+        return None
+    tri_side = np.zeros(n_tris, np.int8)
+    nm = int(room_lights.num_mesh_tris)
+    tri_side[:nm] = int(room_lights.summary["seen_side"])
+    tri_side[:nm][np.asarray(room_lights.light_tri, bool)[:nm]] = 0
+    return tri_side

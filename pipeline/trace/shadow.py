@@ -30,6 +30,7 @@ the objects' effect.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -113,6 +114,11 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
                  obj_isect: Intersector | None = None, contact_px: int = CONTACT_BAND_PX) -> np.ndarray:
     """Shadow ratio per pixel, (H, W) float32; 1 on object pixels and wherever nothing changes.
 
+    The steps: :func:`room_points` (the room points the objects can change), :func:`light_without_objects`
+    (``E0``, and ``E1`` with the area lights' shadows), :func:`_object_cones` (what the objects swap in the
+    cones of their bounding spheres), :func:`_point_lights`, then the smoothing
+    (:func:`_smooth_unshadowed`, :func:`_smooth_ratio`) when ``stride > 1`` or ``smooth > 0``.
+
     Parameters
     ----------
     scene : the frame's scene (room + objects)
@@ -137,11 +143,45 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
     grid = np.zeros((H, W), bool)
     grid[::stride, ::stride] = True
     contact = _dilate(obj, contact_px) & ~obj if stride > 1 or smooth > 0 else np.zeros((H, W), bool)
-    pix = np.flatnonzero(~obj.ravel() & (grid | contact).ravel())
+    pts = room_points(scene, camera, ~obj.ravel() & (grid | contact).ravel(), min_effect)
+    pix = pts.pix
+    n = pix.size
+    if n == 0:
+        return out.reshape(H, W)
+    per = np.where(contact.ravel()[pix], 2 * samples, samples)              # rays per point
+    E0, E1, rays = light_without_objects(scene, room_isect, obj_isect, pts, per, rng, eps)
+    E1 = _object_cones(scene, room_isect, obj_isect, pts, per, E0, E1, rng, eps, min_effect)
+    E0, E1 = _point_lights(scene, room_isect, obj_isect, pts, E0, E1, eps)
+    if stride > 1 or smooth > 0:
+        E0, E1 = _smooth_unshadowed(E0, E1, pix, H, W)
+    ratio = np.where(E0 > 0, E1 / np.where(E0 > 0, E0, 1.0), 1.0)
+    out[pix] = np.clip(ratio, 0.0, 2.0)
+    log.debug("shadow ratio: %d room points traced, %d rays", n, rays)
+    out = out.reshape(H, W)
+    if stride == 1 and smooth <= 0:
+        return out
+    return _smooth_ratio(out, grid, obj, contact, stride, smooth)
+
+
+@dataclass(frozen=True)
+class RoomPoints:
+    """The room points the shadow pass traces: where pixels' centre rays meet the room near an object."""
+
+    pix: np.ndarray       # (n,) int64, flat pixel index
+    p: np.ndarray         # (n, 3) float32, m, world point
+    ng: np.ndarray        # (n, 3) float32, unit geometric normal facing the camera
+    sin2: np.ndarray      # (n, N) float64, (r / d)^2 of each object's bounding sphere (:func:`sphere_cover`)
+    centres: np.ndarray   # (N, 3) float64, m, the bounding spheres' centres
+
+
+def room_points(scene: TraceScene, camera: Camera, candidates: np.ndarray, min_effect: float) -> RoomPoints:
+    """The room points seen by the pixels ``candidates`` (H*W,) bool that some object's bounding sphere
+    covers by at least ``min_effect`` (elsewhere the objects cannot change the light by as much)."""
+    pix = np.flatnonzero(candidates)
     o, d = camera.rays(pix, np.full((pix.size, 2), 0.5))
     h = scene.intersector.intersect(o, d)
     room_hit = h.hit & (scene.tri_inst[np.maximum(h.prim, 0)] == 0)
-    pix, d, h_t = pix[room_hit], d[room_hit], h.t[room_hit]
+    pix, d = pix[room_hit], d[room_hit]
     prim, u, v = h.prim[room_hit], h.u[room_hit], h.v[room_hit]
     f = scene.faces[prim]
     V = scene.vertices
@@ -155,11 +195,21 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
     near = (sin2 >= min_effect).any(axis=1)
     pix, p, ng = pix[near], p[near], ng[near]
     sin2 = sin2[near]
-    n = pix.size
-    if n == 0:
-        return out.reshape(H, W)
-    # E0, the light arriving without objects: cosine-weighted hemisphere rays against the room alone
-    per = np.where(contact.ravel()[pix], 2 * samples, samples)              # rays per point
+    return RoomPoints(pix=pix, p=p, ng=ng, sin2=sin2, centres=c)
+
+
+def light_without_objects(scene: TraceScene, room_isect: Intersector, obj_isect: Intersector, pts: RoomPoints,
+                          per: np.ndarray, rng: np.random.Generator, eps: float
+                          ) -> tuple[np.ndarray, np.ndarray, int]:
+    """``E0``, the light arriving at the room points without objects, and ``E1``, the same less the area
+    lights' light the objects block: each (n,) float64 luminance, as radiance from a white surface.
+
+    Cosine-weighted hemisphere rays against the room alone; the area lights, sampled explicitly
+    (:func:`_direct_light`), take a quarter of the ``per`` (n,) rays per point. Returns
+    ``(E0, E1, hemisphere rays)``.
+    """
+    p, ng = pts.p, pts.ng
+    n = pts.pix.size
     # the area lights, sampled explicitly, take a quarter of the budget from the hemisphere rays, which
     # then see only the room's indirect light (smooth: fewer rays suffice)
     lper = np.maximum(2, per // 4) if scene.area_lights.count else np.zeros_like(per)
@@ -177,10 +227,19 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
         E1 = E0 - blocked
     else:
         E1 = E0.copy()
-    # what the objects change: rays sampled uniformly inside the cone of each nearby bounding sphere
-    # (low noise for a small solid angle); a ray that hits an object before the room swaps the room's
-    # light behind it for the object's (albedo x mean light here); directions inside several cones
-    # are shared between them (weight 1 / number of cones)
+    return E0, E1, pr.size
+
+
+def _object_cones(scene: TraceScene, room_isect: Intersector, obj_isect: Intersector, pts: RoomPoints,
+                  per: np.ndarray, E0: np.ndarray, E1: np.ndarray, rng: np.random.Generator, eps: float,
+                  min_effect: float) -> np.ndarray:
+    """``E1`` (n,) with what the objects change: rays sampled uniformly inside the cone of each nearby
+    bounding sphere (low noise for a small solid angle); a ray that hits an object before the room swaps
+    the room's light behind it for the object's (albedo x ``E0`` here); directions inside several cones
+    are shared between them (weight 1 / number of cones). ``max(2, per // 4)`` rays per cone."""
+    p, ng, sin2, c = pts.p, pts.ng, pts.sin2, pts.centres
+    n = pts.pix.size
+    E1 = E1.copy()
     cos_max = np.where(sin2 < 1, np.sqrt(np.maximum(0.0, 1 - sin2)), -1.0)  # inside a sphere: all directions
     axes = c[None] - p[:, None, :].astype(np.float64)
     axes /= np.maximum(np.linalg.norm(axes, axis=2, keepdims=True), 1e-12)
@@ -221,6 +280,15 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
         pdf = 1.0 / (2 * np.pi * (1 - cm[b]))
         dE = (Lb - alb * E0[prk[b]]) * cosn[b] / np.pi / pdf / m[b] / shared
         E1 -= np.bincount(prk[b], weights=dE, minlength=n)
+    return E1
+
+
+def _point_lights(scene: TraceScene, room_isect: Intersector, obj_isect: Intersector, pts: RoomPoints,
+                  E0: np.ndarray, E1: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(E0, E1)`` (n,) with the point lights' direct light added: to ``E0`` where the room does not
+    block it, to ``E1`` where the objects do not block it either."""
+    p, ng = pts.p, pts.ng
+    E0, E1 = E0.copy(), E1.copy()
     pl = scene.point_lights
     for k in range(pl.count):
         dv = pl.position[k] - p
@@ -238,24 +306,32 @@ def shadow_ratio(scene: TraceScene, camera: Camera, labels: np.ndarray, rng: np.
         e = (pl.intensity[k] @ LUMINANCE_F64) * cos[ok] / dd[ok] ** 2 / np.pi  # as radiance from a white surface
         E0[ok] += e
         E1[ok] += np.where(obj_isect.occluded(org_l, wl[ok], tmax), 0.0, e)
-    if stride > 1 or smooth > 0:
-        # The light arriving without objects changes slowly over the room: average it over neighbouring
-        # points (its sampling noise would otherwise scale the objects' effect); what the objects take
-        # away (E0 - E1) keeps its full resolution.
-        traced = np.zeros(H * W, bool)
-        traced[pix] = True
-        e0 = np.zeros(H * W)
-        e0[pix] = E0
-        E0s = _normalized_blur(e0.reshape(H, W), traced.reshape(H, W), E0_SMOOTH_PX).ravel()[pix]
-        E1, E0 = E0s - (E0 - E1), E0s
-    ratio = np.where(E0 > 0, E1 / np.where(E0 > 0, E0, 1.0), 1.0)
-    out[pix] = np.clip(ratio, 0.0, 2.0)
-    log.debug("shadow ratio: %d room points traced, %d rays", n, pr.size)
-    out = out.reshape(H, W)
-    if stride == 1 and smooth <= 0:
-        return out
-    # Normalised convolution over room samples only (object pixels carry no sample, so the ratio beside an
-    # object is not pulled towards 1 by it): wide away from the objects, under a pixel in the contact band.
+    return E0, E1
+
+
+def _smooth_unshadowed(E0: np.ndarray, E1: np.ndarray, pix: np.ndarray, H: int, W: int
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """``(E0, E1)`` with ``E0`` averaged over neighbouring traced points (over :data:`E0_SMOOTH_PX`).
+
+    The light arriving without objects changes slowly over the room: its sampling noise would otherwise
+    scale the objects' effect; what the objects take away (``E0 - E1``) keeps its full resolution.
+    """
+    traced = np.zeros(H * W, bool)
+    traced[pix] = True
+    e0 = np.zeros(H * W)
+    e0[pix] = E0
+    E0s = _normalized_blur(e0.reshape(H, W), traced.reshape(H, W), E0_SMOOTH_PX).ravel()[pix]
+    return E0s, E0s - (E0 - E1)
+
+
+def _smooth_ratio(out: np.ndarray, grid: np.ndarray, obj: np.ndarray, contact: np.ndarray, stride: int,
+                  smooth: float) -> np.ndarray:
+    """The ratio (H, W) smoothed: wide away from the objects, under a pixel in the contact band; (H, W)
+    float32, 1 on object pixels.
+
+    A normalised convolution over room samples only (object pixels carry no sample, so the ratio beside an
+    object is not pulled towards 1 by it).
+    """
     far = _normalized_blur(out, grid & ~obj, max(smooth, 0.5) * stride)
     near = _normalized_blur(out, (grid | contact) & ~obj, CONTACT_SMOOTH_PX)
     res = np.where(contact, near, far)

@@ -139,6 +139,60 @@ def test_glb_round_trip(tmp_path):
     assert m.vertex_colors is not None and np.all(m.vertex_colors[:, 1] == 200)
 
 
+def _gltf_files(folder, mesh):
+    """Export ``mesh`` as a .gltf with separate .bin buffers into ``folder``; returns the .gltf path and the
+    buffers' names."""
+    folder.mkdir(parents=True, exist_ok=True)
+    files = mesh.export(file_type="gltf")
+    for name, data in files.items():
+        (folder / name).write_bytes(data)
+    return folder / "model.gltf", [n for n in files if n.endswith(".bin")]
+
+
+def test_gltf_whose_bin_is_a_symlink_to_another_folder_loads(tmp_path):
+    """A folder of models made of symlinks (the user's choice of files) loads like the files themselves."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
+    gltf, bins = _gltf_files(tmp_path / "store", sphere)
+    lib = tmp_path / "lib"
+    lib.mkdir()
+    (lib / "ball.gltf").write_bytes(gltf.read_bytes())
+    for name in bins:
+        (lib / name).symlink_to(tmp_path / "store" / name)
+    m = load_object_file(lib / "ball.gltf", obj_id=1, scale=1.0, unit_note="metres (glTF)")
+    assert len(m.vertices) == len(sphere.vertices) == 42 and len(m.faces) == len(sphere.faces)
+    # the .gltf itself a symlink: its buffers are found beside its target
+    (tmp_path / "links").mkdir()
+    (tmp_path / "links" / "ball.gltf").symlink_to(gltf)
+    assert len(load_library([str(tmp_path / "links")])[0].vertices) == 42
+
+
+def test_gltf_with_a_missing_bin_names_the_file(tmp_path):
+    import trimesh
+
+    gltf, bins = _gltf_files(tmp_path / "store", trimesh.creation.icosphere(subdivisions=1, radius=0.05))
+    (tmp_path / "lib").mkdir()
+    (tmp_path / "lib" / "ball.gltf").write_bytes(gltf.read_bytes())
+    with pytest.raises(InputError, match=rf"ball\.gltf: the model refers to '{bins[0]}', which is not in "
+                                         rf".*lib; copy the file"):
+        load_library([str(tmp_path / "lib" / "ball.gltf")])
+
+
+def test_gltf_reference_outside_its_folder_is_refused_with_the_reason(tmp_path):
+    import trimesh
+
+    gltf, bins = _gltf_files(tmp_path / "store", trimesh.creation.icosphere(subdivisions=1, radius=0.05))
+    doc = json.loads(gltf.read_text())
+    for b in doc["buffers"]:
+        b["uri"] = "../store/" + b["uri"]
+    (tmp_path / "lib").mkdir()
+    (tmp_path / "lib" / "ball.gltf").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"refers to '\.\./store/.*\.bin', outside its folder .*lib; .* a symlink "
+                                         r"to it"):
+        load_library([str(tmp_path / "lib" / "ball.gltf")])
+
+
 def test_ids_across_sources(tmp_path):
     (tmp_path / "bop").mkdir()
     write_colored_ply(tmp_path / "bop" / "obj_000004.ply", cube_mesh(50.0))
