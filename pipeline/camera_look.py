@@ -17,16 +17,14 @@ Blur level
     of Zhuo and Sim 2011): the photo's edges around the objects are compared with the composite's
     object edges for a few Gaussian blurs of the object layer, and the blur whose edges match wins
     (:func:`match_blur_sigma`). The select stage's no-reference measure (Crete et al.'s blur effect,
-    :func:`pipeline.blur.blur_effect`) was tried first and rejected: it depends on content, and the
-    room's soft texture beside the objects' crisp silhouettes made it choose 1.5-2 px for a camera blur
-    of 1 px (about 5 dB lost in bench/composite.py). Only the silhouettes of the objects are measured
+    :func:`pipeline.blur.blur_effect`) is not used here: it depends on content, and the room's soft
+    texture beside the objects' crisp silhouettes makes it read 1.5-2 px for a camera blur of 1 px. Only the silhouettes of the objects are measured
     on the composite side (their interior shading is soft in itself), with a noise field of the photo's
     own gray-level noise added (noise makes edges look sharper). The per-edge estimates are summarised
-    by their 75th percentile: against the path-traced truth of bench/composite.py (camera PSF 0.5-2 px
-    on photo and truth) the 25th percentile, chosen on an earlier stand-in truth, underestimated a 1 px
-    camera blur as 0-0.8 px (about 0.8 dB lost), because the photo's noisy fine texture gives many
-    falsely sharp edge pixels; the 75th chooses 0.6-1.0 px there and is within 0.15 dB of the true
-    sigma from 1 to 2 px. Photos softer than the render by less than about 0.5 px are left unblurred.
+    by their 75th percentile, because the photo's noisy fine texture gives many falsely sharp edge
+    pixels: against the path-traced truth of bench/composite.py (camera PSF 0.5-2 px on photo and
+    truth) it reads a 1 px blur as 0.6-1.0 px and is within 0.15 dB of the true sigma from 1 to 2 px,
+    where the 25th percentile reads 0-0.8 px. Photos softer than the render by less than about 0.5 px are left unblurred.
 
 Sensor noise
     Estimated from the photo around the objects with Immerkaer's Laplacian-difference mask, taking

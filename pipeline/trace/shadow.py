@@ -19,10 +19,9 @@ of radius ``r`` can cover).
 Resolution: away from the objects the ratio is traced on a ``stride`` grid and smoothed; within
 :data:`CONTACT_BAND_PX` pixels of them, where an object meets the surface it rests on, every pixel is
 traced (twice the rays) and smoothed over :data:`CONTACT_SMOOTH_PX`, so the dark contact line keeps its
-strength (against Mitsuba, 1.5 px let the light suite's one-pixel contact lines come out at a ratio of
-0.6-0.8 where the truth has 0.1-0.3; 0.75 px gained 0.5-1.6 dB in the band around the objects).
-Smoothing is a normalised convolution over room samples only (object pixels are not samples: they used
-to be written as 1 before smoothing and diluted the contact shadow), and ``E0``, which changes slowly,
+strength (a wider kernel washes one-pixel contact lines out toward 1 where the truth is dark).
+Smoothing is a normalised convolution over room samples only (object pixels are not samples: counted as
+1 they would dilute the contact shadow), and ``E0``, which changes slowly,
 is averaged over :data:`E0_SMOOTH_PX` before the ratio is formed, so its sampling noise does not scale
 the objects' effect.
 """
