@@ -40,7 +40,7 @@ from pipeline.errors import InputError
 from pipeline.io import atomic_write_json, dumps_json, read_json
 from pipeline.runfolder import (COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, DATASET_DIR, FrameKey, load_objects,
                                 load_raster_frame, raster_frames)
-from pipeline.runner import Item, Stage, StageContext
+from pipeline.stages import Item, Stage, StageContext
 
 log = logging.getLogger(__name__)
 

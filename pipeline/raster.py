@@ -55,8 +55,8 @@ from pipeline.io import atomic_save_npz, atomic_write_json, load_npz, read_json
 from pipeline.runfolder import (RASTER_TPATH, REAL_DEPTH_TPATH, SCENE_DEPTH_TPATH, FrameKey, frames_to_render,
                                 list_scenes, load_objects, load_placement, load_room_mesh, load_scan,
                                 simulated_drops)
-from pipeline.runner import Item, Stage, StageContext
 from pipeline.scanformats.common import read_depth
+from pipeline.stages import Item, Stage, StageContext
 from pipeline.tolerances import BOP_VISIB_DELTA_M, POSE_ORTHONORMAL_TOL
 from pipeline.types import ObjectModel, Placement, Scan
 

@@ -20,7 +20,7 @@ from pipeline.io import atomic_write_json
 from pipeline.runfolder import (DROP_TPATH, PLACEMENT_TPATH, ROOM_PROXY_TPATH, SELECTION_TPATH, file_stamp,
                                 list_scenes, load_object_proxy, load_objects, load_scan, load_selection, path,
                                 save_placement)
-from pipeline.runner import Item, Stage, StageContext
+from pipeline.stages import Item, Stage, StageContext
 from pipeline.types import Placement
 
 log = logging.getLogger(__name__)

@@ -37,8 +37,9 @@ from pipeline.io import atomic_save_npz, load_npz
 from pipeline.runfolder import (DROP_TPATH, FRAMES_TPATH, SCAN_TPATH, TRACE_TPATH, FrameKey, RasterFrame,
                                 file_stamp, load_objects, load_raster_frame, load_scan, path, raster_frames,
                                 room_trace_mesh)
-from pipeline.runner import Item, Stage, StageContext, worker_count
+from pipeline.runner import worker_count
 from pipeline.scanformats.common import read_color
+from pipeline.stages import Item, Stage, StageContext
 from pipeline.threads import one_blas_thread
 
 log = logging.getLogger(__name__)

@@ -174,7 +174,7 @@ def make_run(run_dir, rasterizer, *, width: int = W_RUN, height: int = H_RUN, fr
 
 def run_stage_direct(stage, run_dir, cfg) -> dict:
     """Run a stage's items in this process (plan, run_item, finish), as the runner does with one worker."""
-    from pipeline.runner import StageContext
+    from pipeline.stages import StageContext
 
     ctx = StageContext(run_dir=run_dir, cfg=cfg, stage=stage.name)
     results = {}

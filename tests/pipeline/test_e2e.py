@@ -377,7 +377,7 @@ def test_memory_stays_flat_over_many_frames(reference, tmp_path):
     import numpy as np
 
     from pipeline.config import load_config
-    from pipeline.runner import StageContext
+    from pipeline.stages import StageContext
     from pipeline.stages import get_stage
 
     _, ref, _ = reference

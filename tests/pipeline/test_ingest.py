@@ -14,7 +14,7 @@ from pipeline.config import build_config
 from pipeline.errors import InputError, UserError
 from bench.reference import raycast
 from pipeline.reconstruct import drop_small_components, floor_up, fuse_tsdf
-from pipeline.runner import StageContext
+from pipeline.stages import StageContext
 from pipeline.scanformats.common import read_color, read_depth
 from pipeline.scanformats.detect import read_scan
 from pipeline.scanformats.mesh import canonical_order, ply_bytes, read_room_ply
