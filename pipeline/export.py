@@ -38,8 +38,8 @@ import numpy as np
 from pipeline import export_bop, export_coco, export_yolo
 from pipeline.errors import InputError
 from pipeline.io import atomic_write_json, dumps_json, read_json
-from pipeline.runfolder import (COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, DATASET_DIR, FrameKey, load_objects,
-                                load_raster_frame, raster_frames)
+from pipeline.runfolder import (COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, DATASET_DIR, SUMMARY_TPATH, FrameKey,
+                                load_objects, load_raster_frame, path, raster_frames)
 from pipeline.stages import Item, Stage, StageContext
 
 log = logging.getLogger(__name__)
@@ -50,7 +50,6 @@ FRAMES_DIR = "_frames"
 MERGED_COCO = "coco_train_pbr.json"
 MERGED_COCO_MODAL = "coco_train_pbr_modal.json"
 MARKER = "scansynth_run.json"
-SUMMARY = "summary.json"
 NO_COMPOSITE = "no composite image (its composite item failed or the composite stage has not run)"
 INDEX = "scansynth_index.json"
 
@@ -139,9 +138,13 @@ def plan(ctx: StageContext) -> list[Item]:
     if left_out:
         log.warning("export: %d of %d frame(s) have no composite image (composite item failed or not run) and "
                     "are LEFT OUT of the dataset (listed in %s): %s", len(left_out), len(frames) + len(left_out),
-                    ctx.stage_dir / SUMMARY, ", ".join(list(left_out)[:5]))
+                    summary_path(ctx), ", ".join(list(left_out)[:5]))
     slots = assign_slots(frames, ctx.cfg.export.chunk_size)
     return [Item(key=_key(s), data=s.__dict__.copy()) for s in slots]
+
+
+def summary_path(ctx: StageContext) -> Path:
+    return path(ctx.run_dir, SUMMARY_TPATH, stage=ctx.stage)
 
 
 def scene_dir(run_dir: Path, bop_scene: int) -> Path:
@@ -243,10 +246,10 @@ def finish(ctx: StageContext, results: dict[str, dict]) -> None:
         log.warning("export: removed %d image file(s) of an earlier export of this run that are no longer in "
                     "the dataset", removed)
     n_images = sum(len(v) for v in parts.values())
-    atomic_write_json(ctx.stage_dir / SUMMARY, {"images": n_images, "left_out": dict(sorted(left_out.items()))})
+    atomic_write_json(summary_path(ctx), {"images": n_images, "left_out": dict(sorted(left_out.items()))})
     if left_out:
         log.warning("export: %d frame(s) left out of the dataset, %d exported; reasons in %s",
-                    len(left_out), n_images, ctx.stage_dir / SUMMARY)
+                    len(left_out), n_images, summary_path(ctx))
     if not parts:
         log.warning("export: no frame to export (raster produced none, or none has a composite image)")
         return

@@ -189,7 +189,7 @@ def finish(ctx: StageContext, results: dict[str, dict]) -> None:
     for r in results.values():
         counts[r["verdict"]] = counts.get(r["verdict"], 0) + 1
     total = sum(counts.values())
-    atomic_write_json(ctx.stage_dir / "summary.json",
+    atomic_write_json(path(ctx.run_dir, SUMMARY_TPATH, stage=ctx.stage),
                       {"drops": total, "verdicts": counts,
                        "accepted_share": (counts.get("accepted", 0) / total) if total else 0.0})
     rejected = total - counts.get("accepted", 0)
