@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline import export, raster
+from pipeline import export, raster, runfolder
 from pipeline.config import build_config
 from pipeline.export_bop import bop_json_text, depth_png, models_info_mm, ply_bytes_mm, read_ply_mm
 from pipeline.runfolder import COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, RASTER_TPATH, FrameKey
