@@ -17,6 +17,7 @@ import json
 import logging
 from pathlib import Path
 
+from pipeline.bop_layout import RGB_DIR, RGB_EXTS, SPLIT
 from pipeline.runfolder import DATASET_DIR, SELECTION_TPATH, SUMMARY_TPATH, path
 
 log = logging.getLogger(__name__)
@@ -72,11 +73,11 @@ def _mapping(v) -> dict:
 
 
 def images(run_dir: str | Path) -> int:
-    """RGB images in the finished dataset (``RUN/export/dataset/<split>/<scene>/rgb/``)."""
+    """RGB images in the finished dataset (``RUN/export/dataset/train_pbr/<scene>/rgb/``)."""
     root = Path(run_dir) / DATASET_DIR
     if not root.is_dir():
         return 0
-    return sum(1 for p in root.glob("*/*/rgb/*") if p.suffix in (".jpg", ".png"))
+    return sum(1 for p in root.glob(f"{SPLIT}/*/{RGB_DIR}/*") if p.suffix[1:] in RGB_EXTS)
 
 
 def throughput(run_dir: str | Path, stages: list[dict]) -> dict:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.bop_layout import SPLIT
 from pipeline.errors import UserError
 from pipeline.io import atomic_write_bytes, encode_image
 from pipeline.runfolder import DATASET_DIR, SCAN_TPATH, SELECTION_TPATH, path
@@ -132,7 +133,7 @@ def _samples(run: Path, max_samples: int) -> tuple[str, list[str]]:
     assets = run / ASSETS_DIR
     written: set[str] = set()
     try:
-        if not (dataset / "train_pbr").is_dir():
+        if not (dataset / SPLIT).is_dir():
             return "<p class=muted>No dataset yet (the export stage has not run).</p>", notes
         n_images, samples = annotated_samples(dataset, max_samples)
         if not n_images:
