@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.reference import iou, raycast  # noqa: F401  (the tests' independent reference renderer)
+from tests.support.reference import iou, raycast  # noqa: F401  (the tests' independent reference renderer)
 from pipeline.geometry import look_at
 from pipeline.runfolder import RASTER_TPATH, read_raster_frame
 from pipeline.types import ObjectModel, Placement

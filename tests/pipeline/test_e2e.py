@@ -420,7 +420,7 @@ def test_partial_capture_gives_a_dataset(shared_data, tmp_path, capture):
     camera), and a table cropped out of that mesh (no floor; heights span 0.45 m), run end to end: drops
     are accepted on the visible surfaces, composited onto that photo and written as BOP, COCO and YOLO,
     with the registration record and the report the other formats get."""
-    from bench.captures import cropped_table_scan, one_view_scan
+    from tests.support.captures import cropped_table_scan, one_view_scan
 
     make = one_view_scan if capture == "one-view" else cropped_table_scan
     scan, mesh, _, _ = make(shared_data, tmp_path)
