@@ -17,9 +17,9 @@ import numpy as np
 from pipeline.config import SimulateConfig
 from pipeline.errors import InputError, UserError
 from pipeline.io import atomic_write_json
-from pipeline.runfolder import (DROP_TPATH, PLACEMENT_TPATH, ROOM_PROXY_TPATH, SELECTION_TPATH, file_stamp,
-                                list_scenes, load_object_proxy, load_objects, load_scan, load_selection, path,
-                                save_placement)
+from pipeline.runfolder import (DROP_TPATH, PLACEMENT_TPATH, ROOM_PROXY_TPATH, SELECTION_TPATH, SUMMARY_TPATH,
+                                file_stamp, list_scenes, load_object_proxy, load_objects, load_scan, load_selection,
+                                path, save_placement)
 from pipeline.stages import Item, Stage, StageContext
 from pipeline.types import Placement
 
