@@ -188,3 +188,45 @@ def test_the_layer_check_finds_an_upward_import():
     assert upward_imports({"pipeline.composite": {"pipeline.raster"}}) == \
         ["pipeline.composite (stages) imports pipeline.raster (stages)"]
     assert upward_imports({"pipeline.raster": {"pipeline.runfolder", "pipeline.annotate"}}) == []
+
+
+# The product's tests and code stand without the benchmarks: ``bench/`` is dev-only and imports from the
+# tests' shared references (``tests.support``), never the other way. Only the tests of the bench scripts
+# themselves (``tests/bench/``) import ``bench``; nothing in the packages imports ``bench`` or ``tests``.
+def foreign_imports(sources: dict[str, str], forbidden: tuple[str, ...]) -> list[str]:
+    """``"<module> imports <name>"`` for each import in ``sources`` (module name -> source text) of a
+    package in ``forbidden`` or one of its modules, wherever the import is."""
+    out = []
+    for m, text in sorted(sources.items()):
+        for node in ast.walk(ast.parse(text)):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [node.module]
+            out += [f"{m} imports {n}" for n in names if n.split(".")[0] in forbidden]
+    return out
+
+
+def _test_sources() -> dict[str, str]:
+    tests = ROOT / "tests"
+    return {".".join(p.relative_to(ROOT).with_suffix("").parts): p.read_text(encoding="utf-8")
+            for p in sorted(tests.rglob("*.py")) if not p.is_relative_to(tests / "bench")}
+
+
+def test_product_tests_import_nothing_from_bench():
+    assert foreign_imports(_test_sources(), ("bench",)) == []
+
+
+def test_the_packages_import_nothing_from_bench_or_tests():
+    sources = {m: p.read_text(encoding="utf-8") for m, p in _modules().items()}
+    assert foreign_imports(sources, ("bench", "tests")) == []
+
+
+def test_the_bench_check_finds_a_bench_import():
+    planted = {"tests.pipeline.test_a": "def test():\n    from bench.reference import raycast\n",
+               "tests.pipeline.test_b": "import bench\nimport benchmark\nfrom tests.support.reference import iou\n",
+               "tests.pipeline.test_c": "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    import bench.common\n"}
+    assert foreign_imports(planted, ("bench",)) == ["tests.pipeline.test_a imports bench.reference",
+                                                    "tests.pipeline.test_b imports bench",
+                                                    "tests.pipeline.test_c imports bench.common"]
