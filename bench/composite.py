@@ -135,25 +135,21 @@ def _make_views(tmp: Path, views: int):
 
 
 def _trace_passes(scene, split, cam, labels, rng, tcfg, spp: int):
-    """The trace stage's passes at ``spp``: (pbr, ao, coverage, sr, s_render, s_shadow)."""
-    import dataclasses
+    """The trace stage's passes at ``spp``: (pbr, ao, coverage, sr, s_render, s_shadow).
 
-    from pipeline.trace.denoise import denoise, denoise_ao
-    from pipeline.trace.pbr import render, trace_mask
-    from pipeline.trace.shadow import shadow_ratio
-    from pipeline.trace.stage import settings_from_config
+    The stage's own functions (:func:`pipeline.trace.stage.object_passes`, :func:`~pipeline.trace.stage.shadow_pass`)
+    with ``tcfg`` at ``spp`` and its shadow samples scaled with ``spp`` (the stage's default is for 16 spp).
+    AO is traced (the stage traces it for the published blend only; here that blend is measured beside the
+    full one); no object shadows (the stage takes them for fit lighting; this benchmark traces scan lighting).
+    """
+    from pipeline.trace.stage import object_passes, shadow_pass
 
-    shadow = max(4, tcfg.shadow_samples * spp // 16)   # the stage's default at 16 spp, scaled with spp
-    cfg = dataclasses.replace(tcfg, spp=spp, spp_min=min(tcfg.spp_min, spp))
+    shadow = max(4, tcfg.shadow_samples * spp // 16)
+    cfg = dataclasses.replace(tcfg, spp=spp, spp_min=min(tcfg.spp_min, spp), shadow_samples=shadow)
     t0 = time.perf_counter()
-    fb = render(scene, cam, trace_mask(labels, cfg.edge_band), settings_from_config(cfg), rng)
-    pbr, ao = fb.pbr, fb.ao
-    if cfg.denoise != "off":   # as the trace stage does
-        pbr = denoise(fb.pbr, fb.albedo, fb.normal, fb.coverage > 0, method=cfg.denoise)
-        ao = denoise_ao(fb.ao, fb.normal, fb.coverage > 0, method=cfg.denoise)
+    _, fb, pbr, ao = object_passes(scene, cam, labels, cfg, rng, ao=True)
     t1 = time.perf_counter()
-    sr = shadow_ratio(scene, cam, labels, rng, samples=shadow, min_effect=cfg.shadow_min_effect,
-                      stride=cfg.shadow_stride, smooth=cfg.shadow_smooth, room_isect=split[0], obj_isect=split[1])
+    sr = shadow_pass(scene, cam, labels, cfg, rng, room_isect=split[0], obj_isect=split[1])
     t2 = time.perf_counter()
     return pbr, ao, fb.coverage, sr, t1 - t0, t2 - t1
 

@@ -31,7 +31,7 @@ def measure(scan_dir: Path, voxel: float, work: Path) -> dict:
     from pipeline.ingest import ingest_scan
     from pipeline.runfolder import load_room_mesh
     from pipeline.scanformats.common import read_depth
-    from bench.reference import raycast
+    from tests.support.reference import raycast
 
     cfg = build_config({"scan": {"paths": [str(scan_dir)]},
                         "ingest": {"tsdf_voxel": voxel, "tsdf_trunc": TRUNC_VOXELS * voxel}})

@@ -54,7 +54,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.lightsuite import DEV_ROOMS, ROOMS, build_suite, room_list, tuning_rooms_need_out
-from bench.reference import masked_psnr
+from tests.support.reference import masked_psnr
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"

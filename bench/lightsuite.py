@@ -103,7 +103,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.reference import masked_psnr, raycast
+from tests.support.reference import masked_psnr, raycast
 from pipeline.color import encode_u8, srgb_to_linear
 from pipeline.geometry import look_at
 from pipeline.io import atomic_write_bytes, atomic_write_image, atomic_write_json

@@ -1,6 +1,6 @@
 """Partial-capture benchmark (issue 20): drops of LM-O objects onto scans that are not whole rooms.
 
-Two captures made from real redkitchen data (bench/captures.py): a one-view scan (one frame's photo, depth
+Two captures made from real redkitchen data (tests/support/captures.py): a one-view scan (one frame's photo, depth
 and pose; its mesh from that depth alone) and a table cropped out of it (the faces 0.55-1.0 m above the
 frame's floor: a tabletop capture without the floor). Each goes through ingest, select and prep with the
 real CLI, then the simulate stage's own drop function (:func:`pipeline.simulate.simulate`, with the spawn
@@ -42,7 +42,7 @@ SCENE = "one-view"
 
 def prepared_run(kind: str, cache: Path) -> Path:
     """A run folder of the capture ``kind`` ("one-view" or "cropped table") through prep (cached)."""
-    from bench.captures import cropped_table_scan, one_view_scan
+    from tests.support.captures import cropped_table_scan, one_view_scan
 
     base = cache / kind.replace(" ", "-")
     run = base / "run"
@@ -140,7 +140,7 @@ def main() -> int:
                   f"{r['median_cpu_s_per_drop']:.2f} s CPU/drop")
     res.figures["load_average_start_end"] = [list(load0), list(os.getloadavg())]
     res.notes.append(
-        "Captures from bench/captures.py (redkitchen frame 0; the cropped table keeps faces 0.55-1.0 m above "
+        "Captures from tests/support/captures.py (redkitchen frame 0; the cropped table keeps faces 0.55-1.0 m above "
         "the frame's floor). Drops: pipeline.simulate.simulate with the spawn view map of the kept frame, "
         "3 LM-O objects per drop (meshprep solids), seeds item_rng(0, 'bench-partial', dropNNNN). Objects of "
         "accepted drops are classed by what holds them up (bench.physics.supports); gap = smallest signed "

@@ -105,7 +105,7 @@ def _placement(rng, objects, K, T_c2w, width, height, true_depth, thin_parts, up
 
 def _raycast_frame(objects_by_id, placement, room, K, T_c2w, width, height):
     """Baseline: every raster pass by Open3D ray casting (room, each instance alone, all together)."""
-    from bench.reference import raycast
+    from tests.support.reference import raycast
 
     posed = []
     for oid, R, t in zip(placement.obj_ids, placement.R_m2w, placement.t_m2w):
@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.raster import ensure_objects, render_frame
     from pipeline.render_gl import MeshRasterizer
     from pipeline.synthscan import make_scan
-    from bench.reference import iou
+    from tests.support.reference import iou
 
     W, H = 640, 480
     scan_dir = CACHE / f"synth-seed{args.seed}-{args.frames}"

@@ -32,12 +32,12 @@ def scaled(K: np.ndarray, s: float, du: float, dv: float) -> np.ndarray:
 
 def exported_pairs(run: Path) -> dict:
     """Per exported image of ``run``'s BOP dataset: the distance from the exported depth's edges to the
-    exported photo's edges (:func:`bench.reference.depth_photo_edge_distance`), pixels."""
+    exported photo's edges (:func:`tests.support.reference.depth_photo_edge_distance`), pixels."""
     import json
 
     import cv2
 
-    from bench.reference import depth_photo_edge_distance
+    from tests.support.reference import depth_photo_edge_distance
 
     out = {}
     for scene in sorted((run / "export" / "dataset" / "train_pbr").glob("*")):
@@ -124,7 +124,7 @@ def main() -> int:
         "Extra scale/shift check: scale 0.98..1.02 step 0.005 about the principal point, shifts -3..3 px step 1.",
     ]
     if args.export is not None:
-        from bench.reference import depth_photo_edge_distance
+        from tests.support.reference import depth_photo_edge_distance
         from pipeline.scanformats.common import read_color, read_depth
 
         pairs = exported_pairs(args.export)
@@ -145,8 +145,8 @@ def main() -> int:
                                                    p90_px=round(float(np.nanpercentile(v, 90)), 3))
         res.notes.append(
             "exported_dataset: the BOP depth PNGs against the rgb images of a configs/7scenes.toml run, measured "
-            "by bench.reference.depth_photo_edge_distance (depth jumps > 5 % + 3 cm against Canny edges, OpenCV "
-            "only); source_frames_with_depth_K: the same measure on the held-out source frames with the depth "
+            "by tests.support.reference.depth_photo_edge_distance (depth jumps > 5 % + 3 cm against Canny edges, "
+            "OpenCV only); source_frames_with_depth_K: the same measure on the held-out source frames with the depth "
             "camera's K for the photo (what the dataset had before the colour camera was estimated); baseline: the "
             "exported dataset of the same config from a checkout before the estimate (distances are quantised by "
             "OpenCV's 5x5 distance transform: 1, 1.4, 2, ... px).")

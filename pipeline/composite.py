@@ -45,8 +45,8 @@ from pipeline import camera_look as cl, color
 from pipeline.errors import InputError
 from pipeline.runfolder import (COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, FrameKey, load_raster_frame, load_scan,
                                 load_trace, raster_frames)
-from pipeline.runner import Item, Stage, StageContext
 from pipeline.scanformats.common import read_color
+from pipeline.stages import Item, Stage, StageContext
 
 log = logging.getLogger(__name__)
 

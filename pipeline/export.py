@@ -36,21 +36,21 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import export_bop, export_coco, export_yolo
+from pipeline.bop_layout import (CAMERA_PATH, IMAGE_DIRS, RGB_TPATH, SCENE_GT_COCO_MODAL_PATH, SCENE_GT_COCO_PATH,
+                                 SCENE_TPATH, SPLIT)
 from pipeline.errors import InputError
 from pipeline.io import atomic_write_json, dumps_json, read_json
-from pipeline.runfolder import (COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, DATASET_DIR, FrameKey, load_objects,
-                                load_raster_frame, raster_frames)
-from pipeline.runner import Item, Stage, StageContext
+from pipeline.runfolder import (COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, DATASET_DIR, SUMMARY_TPATH, FrameKey,
+                                load_objects, load_raster_frame, path, raster_frames)
+from pipeline.stages import Item, Stage, StageContext
 
 log = logging.getLogger(__name__)
 
 DATASET = Path(DATASET_DIR).name   # under RUN/export
-SPLIT = "train_pbr"
 FRAMES_DIR = "_frames"
 MERGED_COCO = "coco_train_pbr.json"
 MERGED_COCO_MODAL = "coco_train_pbr_modal.json"
 MARKER = "scansynth_run.json"
-SUMMARY = "summary.json"
 NO_COMPOSITE = "no composite image (its composite item failed or the composite stage has not run)"
 INDEX = "scansynth_index.json"
 
@@ -139,13 +139,17 @@ def plan(ctx: StageContext) -> list[Item]:
     if left_out:
         log.warning("export: %d of %d frame(s) have no composite image (composite item failed or not run) and "
                     "are LEFT OUT of the dataset (listed in %s): %s", len(left_out), len(frames) + len(left_out),
-                    ctx.stage_dir / SUMMARY, ", ".join(list(left_out)[:5]))
+                    summary_path(ctx), ", ".join(list(left_out)[:5]))
     slots = assign_slots(frames, ctx.cfg.export.chunk_size)
     return [Item(key=_key(s), data=s.__dict__.copy()) for s in slots]
 
 
+def summary_path(ctx: StageContext) -> Path:
+    return path(ctx.run_dir, SUMMARY_TPATH, stage=ctx.stage)
+
+
 def scene_dir(run_dir: Path, bop_scene: int) -> Path:
-    return Path(run_dir) / DATASET_DIR / SPLIT / f"{bop_scene:06d}"
+    return Path(run_dir) / DATASET_DIR / SCENE_TPATH.format(scene_id=bop_scene)
 
 
 def run_item(ctx: StageContext, item: Item) -> dict:
@@ -210,7 +214,7 @@ def remove_stale_images(ctx: StageContext, parts: dict[int, dict[int, dict]]) ->
             n += sum(1 for p in sd.rglob("*") if p.is_file())
             shutil.rmtree(sd)
             continue
-        for sub in ("rgb", "depth", "mask", "mask_visib"):
+        for sub in IMAGE_DIRS:
             for p in sorted((sd / sub).glob("*")) if (sd / sub).is_dir() else []:
                 m = rx.fullmatch(p.name)
                 if m and int(m.group(1)) not in keep:
@@ -243,10 +247,10 @@ def finish(ctx: StageContext, results: dict[str, dict]) -> None:
         log.warning("export: removed %d image file(s) of an earlier export of this run that are no longer in "
                     "the dataset", removed)
     n_images = sum(len(v) for v in parts.values())
-    atomic_write_json(ctx.stage_dir / SUMMARY, {"images": n_images, "left_out": dict(sorted(left_out.items()))})
+    atomic_write_json(summary_path(ctx), {"images": n_images, "left_out": dict(sorted(left_out.items()))})
     if left_out:
         log.warning("export: %d frame(s) left out of the dataset, %d exported; reasons in %s",
-                    len(left_out), n_images, ctx.stage_dir / SUMMARY)
+                    len(left_out), n_images, summary_path(ctx))
     if not parts:
         log.warning("export: no frame to export (raster produced none, or none has a composite image)")
         return
@@ -270,22 +274,23 @@ def finish(ctx: StageContext, results: dict[str, dict]) -> None:
         for im_id in sorted(sp):
             s = by_slot[(bop_scene, im_id)]
             part = sp[im_id]
-            images.append(export_coco.image_entry(im_id, f"rgb/{im_id:06d}.{ext}", part["width"], part["height"]))
+            rgb = RGB_TPATH.format(im_id=im_id, ext=ext)   # relative to the scene folder
+            images.append(export_coco.image_entry(im_id, rgb, part["width"], part["height"]))
             anns += [dict(a, image_id=im_id) for a in part["coco"]]
             merged_images.append(export_coco.image_entry(
-                s.global_id, f"{SPLIT}/{bop_scene:06d}/rgb/{im_id:06d}.{ext}", part["width"], part["height"]))
+                s.global_id, f"{SCENE_TPATH.format(scene_id=bop_scene)}/{rgb}", part["width"], part["height"]))
             merged_anns += [dict(a, image_id=s.global_id) for a in part["coco"]]
             index.append({"scene_id": bop_scene, "im_id": im_id, "scene": s.scene, "drop": s.drop,
                           "frame": s.frame, "frame_id": part["frame_id"], "rgb_source": part["rgb_source"]})
             if "yolo" in cfg.formats:
                 yolo_images.append({"name": f"{bop_scene:06d}_{im_id:06d}",
                                     "split": "val" if unit(s) in val_units else "train",
-                                    "rgb": sd / "rgb" / f"{im_id:06d}.{ext}", "width": part["width"],
+                                    "rgb": sd / rgb, "width": part["width"],
                                     "height": part["height"], "labels": part["yolo"]})
         if "coco" in cfg.formats:
-            for name, box in (("scene_gt_coco.json", "amodal"), ("scene_gt_coco_modal.json", "modal")):
+            for name, box in ((SCENE_GT_COCO_PATH, "amodal"), (SCENE_GT_COCO_MODAL_PATH, "modal")):
                 doc = export_coco.coco_document(images, [export_coco.variant(a, box) for a in anns], cats,
-                                                f"scansynth {SPLIT}/{bop_scene:06d} ({box} boxes)")
+                                                f"scansynth {SCENE_TPATH.format(scene_id=bop_scene)} ({box} boxes)")
                 atomic_write_json(sd / name, doc, indent=None)
     if "coco" in cfg.formats:
         for name, box in ((MERGED_COCO, "amodal"), (MERGED_COCO_MODAL, "modal")):
@@ -299,7 +304,7 @@ def finish(ctx: StageContext, results: dict[str, dict]) -> None:
     if "bop" in cfg.formats:
         first = parts[min(parts)][min(parts[min(parts)])]
         K = np.asarray(first["scene_camera"]["cam_K"], dtype=np.float64).reshape(3, 3)
-        atomic_write_json(root / "camera.json", export_bop.camera_json(K, first["width"], first["height"],
+        atomic_write_json(root / CAMERA_PATH, export_bop.camera_json(K, first["width"], first["height"],
                                                                         cfg.depth_scale))
         export_bop.write_models(root, objects)
     atomic_write_json(root / INDEX, {"images": index})

@@ -16,7 +16,7 @@
         scene_gt_info.json                   {im_id: [{bbox_obj, bbox_visib, px_count_all, px_count_valid,
                                                        px_count_visib, visib_fract}]}
 
-Millimetres exist only here: every input is in metres (:mod:`pipeline.types`). JSON files list their
+The names come from :mod:`pipeline.bop_layout`. Millimetres exist only here: every input is in metres (:mod:`pipeline.types`). JSON files list their
 integer keys in numeric order, one entry per line, as bop_toolkit's ``save_json`` does.
 """
 
@@ -27,6 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.bop_layout import (DEPTH_TPATH, MASK_TPATH, MASK_VISIB_TPATH, MODEL_TEXTURE_TPATH, MODEL_TPATH,
+                                 MODELS_DIR, MODELS_INFO_PATH, RGB_TPATH, SCENE_CAMERA_PATH, SCENE_GT_INFO_PATH,
+                                 SCENE_GT_PATH)
 from pipeline.io import atomic_write_bytes, atomic_write_image
 from pipeline.types import ObjectModel
 
@@ -153,17 +156,18 @@ def ply_bytes_mm(obj: ObjectModel, texture_file: str | None = None) -> bytes:
 
 def write_models(root: str | Path, objects: list[ObjectModel]) -> Path:
     """``models/obj_XXXXXX.ply`` (+ texture PNG) and ``models/models_info.json`` under ``root``."""
-    d = Path(root) / "models"
+    root = Path(root)
     info = {}
     for obj in sorted(objects, key=lambda o: o.obj_id):
         tex = None
         if obj.texture is not None and obj.uv is not None:
-            tex = f"obj_{obj.obj_id:06d}.png"
-            atomic_write_image(d / tex, np.asarray(obj.texture, dtype=np.uint8))
-        atomic_write_bytes(d / f"obj_{obj.obj_id:06d}.ply", ply_bytes_mm(obj, tex))
+            tex_path = root / MODEL_TEXTURE_TPATH.format(obj_id=obj.obj_id)
+            tex = tex_path.name   # the PLY header names its texture file, beside it
+            atomic_write_image(tex_path, np.asarray(obj.texture, dtype=np.uint8))
+        atomic_write_bytes(root / MODEL_TPATH.format(obj_id=obj.obj_id), ply_bytes_mm(obj, tex))
         info[int(obj.obj_id)] = models_info_mm(obj)
-    write_bop_json(d / "models_info.json", info)
-    return d
+    write_bop_json(root / MODELS_INFO_PATH, info)
+    return root / MODELS_DIR
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -223,9 +227,9 @@ def depth_png(depth_m: np.ndarray, depth_scale: float) -> np.ndarray:
 def image_paths(scene_dir: str | Path, im_id: int, n_inst: int, ext: str) -> dict:
     """Paths of one image's files in a BOP scene folder."""
     d = Path(scene_dir)
-    return {"rgb": d / "rgb" / f"{im_id:06d}.{ext}", "depth": d / "depth" / f"{im_id:06d}.png",
-            "mask": [d / "mask" / f"{im_id:06d}_{g:06d}.png" for g in range(n_inst)],
-            "mask_visib": [d / "mask_visib" / f"{im_id:06d}_{g:06d}.png" for g in range(n_inst)]}
+    return {"rgb": d / RGB_TPATH.format(im_id=im_id, ext=ext), "depth": d / DEPTH_TPATH.format(im_id=im_id),
+            "mask": [d / MASK_TPATH.format(im_id=im_id, gt_id=g) for g in range(n_inst)],
+            "mask_visib": [d / MASK_VISIB_TPATH.format(im_id=im_id, gt_id=g) for g in range(n_inst)]}
 
 
 def write_image_files(scene_dir: str | Path, im_id: int, *, rgb: np.ndarray, depth_m: np.ndarray,
@@ -253,9 +257,9 @@ def write_image_files(scene_dir: str | Path, im_id: int, *, rgb: np.ndarray, dep
 def write_scene_files(scene_dir: str | Path, scene_camera: dict, scene_gt: dict, scene_gt_info: dict) -> None:
     """``scene_camera.json``, ``scene_gt.json``, ``scene_gt_info.json`` of one BOP scene folder."""
     d = Path(scene_dir)
-    write_bop_json(d / "scene_camera.json", scene_camera)
-    write_bop_json(d / "scene_gt.json", scene_gt)
-    write_bop_json(d / "scene_gt_info.json", scene_gt_info)
+    write_bop_json(d / SCENE_CAMERA_PATH, scene_camera)
+    write_bop_json(d / SCENE_GT_PATH, scene_gt)
+    write_bop_json(d / SCENE_GT_INFO_PATH, scene_gt_info)
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -37,9 +37,9 @@ from pipeline.errors import InputError
 from pipeline.io import atomic_write_bytes
 from pipeline.registration import register_scan, registration_figures
 from pipeline.runfolder import RESERVED_SCENES, ROOM_PLY, builtin_scan_dir, save_scan
-from pipeline.runner import INPUT_PROBLEMS, Item, Stage, StageContext
 from pipeline.scanformats.common import BadFrameWarning, IngestWarning, read_color, select_frames, subsample
 from pipeline.scanformats.mesh import canonical_order, check_mesh_seen_by_cameras, load_mesh_file, ply_bytes
+from pipeline.stages import INPUT_PROBLEMS, Item, Stage, StageContext
 from pipeline.types import Scan
 
 log = logging.getLogger(__name__)

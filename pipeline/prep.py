@@ -23,7 +23,7 @@ import numpy as np
 from pipeline.io import atomic_save_npz, atomic_write_bytes
 from pipeline.runfolder import (OBJECT_PROXY_TPATH, ROOM_PROXY_TPATH, ROOM_TRACE_TPATH, list_scenes, load_objects,
                                 load_room_mesh, load_scan, path)
-from pipeline.runner import Item, Stage, StageContext
+from pipeline.stages import Item, Stage, StageContext
 
 log = logging.getLogger(__name__)
 

@@ -15,6 +15,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from pipeline.bop_layout import (MASK_VISIB_TPATH, MODELS_INFO_PATH, RGB_DIR, RGB_EXTS, RGB_TPATH, SCENE_CAMERA_PATH,
+                                 SCENE_GT_INFO_PATH, SCENE_GT_PATH, SPLIT)
 from pipeline.errors import UserError
 from pipeline.io import read_json
 
@@ -29,16 +31,16 @@ PALETTE = np.array([(230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200),
 def find_dataset(path: Path) -> Path:
     """The BOP dataset folder for a run folder or a dataset folder."""
     for cand in (path, path / "export" / "dataset"):
-        if (cand / "train_pbr").is_dir():
+        if (cand / SPLIT).is_dir():
             return cand
-    raise UserError(f"{path}: no BOP dataset found (looked for train_pbr/ in it and in export/dataset/); "
+    raise UserError(f"{path}: no BOP dataset found (looked for {SPLIT}/ in it and in export/dataset/); "
                     f"run 'scansynth run CONFIG --out {path}' to the export stage first")
 
 
 def _images(dataset: Path) -> list[tuple[Path, int]]:
     out = []
-    for scene_dir in sorted((dataset / "train_pbr").iterdir()):
-        gt = scene_dir / "scene_gt.json"
+    for scene_dir in sorted((dataset / SPLIT).iterdir()):
+        gt = scene_dir / SCENE_GT_PATH
         if gt.is_file():
             out += [(scene_dir, int(k)) for k in sorted(read_json(gt), key=int)]
     return out
@@ -63,7 +65,7 @@ def draw_annotations(rgb: np.ndarray, scene_dir: Path, im_id: int, gts: list, in
     K = np.asarray(cam["cam_K"], np.float64).reshape(3, 3)
     for gt_id, (gt, info) in enumerate(zip(gts, infos)):
         colour = tuple(int(c) for c in PALETTE[gt_id % len(PALETTE)][::-1])
-        mpath = scene_dir / "mask_visib" / f"{im_id:06d}_{gt_id:06d}.png"
+        mpath = scene_dir / MASK_VISIB_TPATH.format(im_id=im_id, gt_id=gt_id)
         if mpath.is_file():
             mask = cv2.imread(str(mpath), cv2.IMREAD_GRAYSCALE)
             contours, _ = cv2.findContours((mask > 0).astype(np.uint8), cv2.RETR_EXTERNAL,
@@ -108,7 +110,7 @@ def annotated_samples(dataset: Path, max_images: int) -> tuple[int, Iterator[Sam
     sheet and the run report (``pipeline/report_html.py``)."""
     images = _images(dataset)
     models_info = {}
-    mi = dataset / "models" / "models_info.json"
+    mi = dataset / MODELS_INFO_PATH
     if mi.is_file():
         models_info = read_json(mi)
 
@@ -120,22 +122,22 @@ def annotated_samples(dataset: Path, max_images: int) -> tuple[int, Iterator[Sam
             scene_dir, im_id = images[idx]
             if scene_dir not in cache:
                 cache[scene_dir] = tuple(read_json(p) if p.is_file() else {} for p in
-                                         (scene_dir / n for n in ("scene_gt.json", "scene_gt_info.json",
-                                                                  "scene_camera.json")))
+                                         (scene_dir / n for n in (SCENE_GT_PATH, SCENE_GT_INFO_PATH,
+                                                                  SCENE_CAMERA_PATH)))
             gt, info, cam = cache[scene_dir]
             key = str(im_id)
             gts, infos = gt.get(key, []), info.get(key, [])
-            rgb_path = next((p for p in (scene_dir / "rgb" / f"{im_id:06d}{ext}" for ext in (".jpg", ".png"))
+            rgb_path = next((p for p in (scene_dir / RGB_TPATH.format(im_id=im_id, ext=ext) for ext in RGB_EXTS)
                              if p.is_file()), None)
             bgr = cv2.imread(str(rgb_path), cv2.IMREAD_COLOR) if rgb_path is not None else None
             if bgr is None:
                 yield Sample(scene_dir, im_id, None, gts, infos,
-                             f"{scene_dir}/rgb: image {im_id:06d} is listed in scene_gt.json but missing "
+                             f"{scene_dir / RGB_DIR}: image {im_id:06d} is listed in {SCENE_GT_PATH} but missing "
                              f"or unreadable")
                 continue
             if key not in cam:
                 yield Sample(scene_dir, im_id, None, gts, infos,
-                             f"{scene_dir}/scene_camera.json: no entry for image {im_id:06d}")
+                             f"{scene_dir / SCENE_CAMERA_PATH}: no entry for image {im_id:06d}")
                 continue
             yield Sample(scene_dir, im_id, draw_annotations(bgr[..., ::-1], scene_dir, im_id, gts, infos,
                                                             cam[key], models_info), gts, infos)

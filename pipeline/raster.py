@@ -52,11 +52,11 @@ from pipeline.config import RasterConfig
 from pipeline.errors import InputError
 from pipeline.geometry import nearest_rotation
 from pipeline.io import atomic_save_npz, atomic_write_json, load_npz, read_json
-from pipeline.runfolder import (RASTER_TPATH, REAL_DEPTH_TPATH, SCENE_DEPTH_TPATH, FrameKey, frames_to_render,
-                                list_scenes, load_objects, load_placement, load_room_mesh, load_scan,
-                                simulated_drops)
-from pipeline.runner import Item, Stage, StageContext
+from pipeline.runfolder import (RASTER_TPATH, REAL_DEPTH_TPATH, SCENE_DEPTH_TPATH, SUMMARY_TPATH, FrameKey,
+                                frames_to_render, list_scenes, load_objects, load_placement, load_room_mesh,
+                                load_scan, simulated_drops)
 from pipeline.scanformats.common import read_depth
+from pipeline.stages import Item, Stage, StageContext
 from pipeline.tolerances import BOP_VISIB_DELTA_M, POSE_ORTHONORMAL_TOL
 from pipeline.types import ObjectModel, Placement, Scan
 
@@ -537,10 +537,11 @@ def finish(ctx: StageContext, results: dict[str, dict]) -> None:
     for r in results.values():
         if r.get("status") == "rejected":
             by_check[r.get("check", "")] = by_check.get(r.get("check", ""), 0) + 1
+    summary = runfolder.path(ctx.run_dir, SUMMARY_TPATH, stage=ctx.stage)
     if rejected:
         log.warning("raster: %d of %d frame(s) rejected (%s); reasons in %s", len(rejected), len(results),
-                    ", ".join(f"{c}: {n}" for c, n in sorted(by_check.items())), ctx.stage_dir / "summary.json")
-    atomic_write_json(ctx.stage_dir / "summary.json",
+                    ", ".join(f"{c}: {n}" for c, n in sorted(by_check.items())), summary)
+    atomic_write_json(summary,
                       {"frames": len(results), "ok": len(ok), "rejected": len(rejected),
                        "rejected_by_check": by_check, "rejected_frames": rejected})
 

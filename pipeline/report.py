@@ -17,7 +17,8 @@ import json
 import logging
 from pathlib import Path
 
-from pipeline.runfolder import DATASET_DIR
+from pipeline.bop_layout import RGB_DIR, RGB_EXTS, SPLIT
+from pipeline.runfolder import DATASET_DIR, SELECTION_TPATH, SUMMARY_TPATH, path
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +46,7 @@ def rejected(run_dir: str | Path) -> dict:
     """
     run = Path(run_dir)
     select: dict[str, dict[str, int]] = {}
-    for p in sorted((run / "select").glob("*/selection.json")):
+    for p in sorted(run.glob(SELECTION_TPATH.format(scene="*"))):
         doc = _read(p)
         if doc is None:
             continue
@@ -61,8 +62,8 @@ def rejected(run_dir: str | Path) -> dict:
         doc = _read(p)
         if doc is not None and doc.get("verdict", "accepted") != "accepted":
             drops[f"{p.parent.name}/{p.stem}"] = str(doc["verdict"])
-    raster = _read(run / "raster" / "summary.json") or {}
-    export = _read(run / "export" / "summary.json") or {}
+    raster = _read(path(run, SUMMARY_TPATH, stage="raster")) or {}
+    export = _read(path(run, SUMMARY_TPATH, stage="export")) or {}
     return {"select": select, "drops": drops, "frames": _mapping(raster.get("rejected_frames")),
             "export": _mapping(export.get("left_out"))}
 
@@ -72,11 +73,11 @@ def _mapping(v) -> dict:
 
 
 def images(run_dir: str | Path) -> int:
-    """RGB images in the finished dataset (``RUN/export/dataset/<split>/<scene>/rgb/``)."""
+    """RGB images in the finished dataset (``RUN/export/dataset/train_pbr/<scene>/rgb/``)."""
     root = Path(run_dir) / DATASET_DIR
     if not root.is_dir():
         return 0
-    return sum(1 for p in root.glob("*/*/rgb/*") if p.suffix in (".jpg", ".png"))
+    return sum(1 for p in root.glob(f"{SPLIT}/*/{RGB_DIR}/*") if p.suffix[1:] in RGB_EXTS)
 
 
 def throughput(run_dir: str | Path, stages: list[dict]) -> dict:

@@ -24,9 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.bop_layout import SPLIT
 from pipeline.errors import UserError
 from pipeline.io import atomic_write_bytes, encode_image
-from pipeline.runfolder import DATASET_DIR
+from pipeline.runfolder import DATASET_DIR, SCAN_TPATH, SELECTION_TPATH, path
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +133,7 @@ def _samples(run: Path, max_samples: int) -> tuple[str, list[str]]:
     assets = run / ASSETS_DIR
     written: set[str] = set()
     try:
-        if not (dataset / "train_pbr").is_dir():
+        if not (dataset / SPLIT).is_dir():
             return "<p class=muted>No dataset yet (the export stage has not run).</p>", notes
         n_images, samples = annotated_samples(dataset, max_samples)
         if not n_images:
@@ -196,11 +197,11 @@ def _rejections(report: dict, run: Path) -> str:
 
 def _scans(run: Path) -> str:
     out = []
-    scenes = sorted(p.parent.name for p in (run / "ingest").glob("*/scan.json"))
+    scenes = sorted(p.parent.name for p in run.glob(SCAN_TPATH.format(scene="*")))
     if not scenes:
         return "<p class=muted>No scan ingested yet.</p>"
     for scene in scenes:
-        doc = _read(run / "ingest" / scene / "scan.json") or {}
+        doc = _read(path(run, SCAN_TPATH, scene=scene)) or {}
         meta = doc.get("meta", {})
         facts = [["format", doc.get("format", "?")],
                  ["frames read / kept after reading", f"{meta.get('frames_read', '?')} / {meta.get('frames_kept', '?')}"],
@@ -215,7 +216,7 @@ def _scans(run: Path) -> str:
         for w in meta.get("warnings", []):
             facts.append(["warning", w])
         block = f"<h3>{_e(scene)}</h3>" + _table(["", ""], facts) + _registration(meta)
-        sel = _read(run / "select" / scene / "selection.json")
+        sel = _read(path(run, SELECTION_TPATH, scene=scene))
         if sel:
             frames = sel.get("frames", [])
             kept = sum(1 for f in frames if f.get("kept"))

@@ -16,6 +16,7 @@ folder, filled with :func:`path` (or :meth:`FrameKey.path` for the per-frame one
     RUN/trace/<scene>/drop<NNNN>/f<frame:06d>.npz           trace: the traced passes
     RUN/composite/<scene>/drop<NNNN>/f<frame:06d>.png       composite: the image (+ ``_depth.npz``)
     RUN/export/dataset/                                     export: BOP, COCO, YOLO
+    RUN/{simulate,raster,export}/summary.json               the stage's counts and rejections, by reason
 """
 
 from __future__ import annotations
@@ -54,6 +55,7 @@ ROOM_LIGHTS_TPATH = "trace/{scene}/lights.npz"        # the fitted room lights (
 COMPOSITE_TPATH = "composite/" + FRAME_KEY_TPATH + ".png"
 COMPOSITE_DEPTH_TPATH = "composite/" + FRAME_KEY_TPATH + "_depth.npz"
 DATASET_DIR = "export/dataset"
+SUMMARY_TPATH = "{stage}/summary.json"                 # a stage's counts and rejections (simulate, raster, export)
 
 RESERVED_SCENES = {"objects", "_builtin", "_items"}   # names under ingest/ that are not scenes
 

@@ -1,5 +1,7 @@
-"""The stage contract: items, done markers, resumable execution.
+"""Running a stage: items, done markers, resumable execution.
 
+The contract's types (:class:`~pipeline.stages.Stage`, :class:`~pipeline.stages.Item`,
+:class:`~pipeline.stages.StageContext`) live in :mod:`pipeline.stages`, below this module and the stages.
 A stage splits its work into :class:`Item` s (a scene, a drop, a frame). ``plan`` lists them from
 what earlier stages wrote; ``run_item`` does one, writing every output atomically under the stage's
 folder and returning a small JSON-able summary. When ``run_item`` returns, the runner writes the
@@ -31,64 +33,19 @@ import traceback
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
 
 from pipeline.config import Config, build_config, config_to_dict
 from pipeline.errors import ConfigError, UserError
 from pipeline.io import atomic_write_json, read_json
-from pipeline.seeding import item_rng
-from pipeline.stages import get_stage
+from pipeline.stages import INPUT_PROBLEMS, Item, Stage, StageContext, get_stage
 
 log = logging.getLogger(__name__)
 
 ITEMS_DIR = "_items"
 PLAN_FAILED = "_plan.failed.json"  # written when a stage cannot list its items
-INPUT_PROBLEMS = "input_problems"  # key of a run_item result: inputs the item left out, one line each
-
-
-@dataclass(frozen=True)
-class Item:
-    """One independent unit of a stage's work."""
-
-    key: str                 # unique within the stage; folder-safe words joined by "/", e.g. "demo/drop0001"
-    data: dict = field(default_factory=dict)  # JSON-able parameters the stage needs to do it
-
-
-@dataclass(frozen=True)
-class StageContext:
-    """What a stage function may read: the run folder and the resolved config."""
-
-    run_dir: Path
-    cfg: Config
-    stage: str
-
-    @property
-    def stage_dir(self) -> Path:
-        return self.run_dir / self.stage
-
-    def rng(self, item: Item) -> np.random.Generator:
-        """The item's own generator, derived from the root seed, the stage name and the item key."""
-        return item_rng(self.cfg.run.seed, self.stage, item.key)
-
-
-@dataclass(frozen=True)
-class Stage:
-    """A pipeline stage: how to list its items and how to do one."""
-
-    name: str
-    plan: Callable[[StageContext], list[Item]]
-    run_item: Callable[[StageContext, Item], dict | None]
-    # Called once after every item finished (merging, reports); must itself be idempotent.
-    finish: Callable[[StageContext, dict[str, dict]], None] | None = None
-    # A stage not built yet: runs nothing and says so. The string says which issue builds it.
-    placeholder: str = ""
-    # Optional start-up of each worker process, run while ``plan`` runs in the main one (imports, reading
-    # what every item reads): a plan that takes long (trace's light fit) would otherwise leave the cores it
-    # does not use idle, and the workers would start cold after it. Writes nothing; a failure is only logged
-    # (the items meet it again and say so).
-    warm: Callable[[StageContext], None] | None = None
 
 
 @dataclass

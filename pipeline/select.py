@@ -41,8 +41,8 @@ from pipeline import blur
 from pipeline.config import SelectConfig
 from pipeline.io import atomic_write_bytes, atomic_write_image, atomic_write_json
 from pipeline.runfolder import SELECTION_TPATH, list_scenes, load_scan
-from pipeline.runner import Item, Stage, StageContext
 from pipeline.scanformats.common import read_color
+from pipeline.stages import Item, Stage, StageContext
 
 log = logging.getLogger(__name__)
 

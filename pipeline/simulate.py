@@ -17,10 +17,10 @@ import numpy as np
 from pipeline.config import SimulateConfig
 from pipeline.errors import InputError, UserError
 from pipeline.io import atomic_write_json
-from pipeline.runfolder import (DROP_TPATH, PLACEMENT_TPATH, ROOM_PROXY_TPATH, SELECTION_TPATH, file_stamp,
-                                list_scenes, load_object_proxy, load_objects, load_scan, load_selection, path,
-                                save_placement)
-from pipeline.runner import Item, Stage, StageContext
+from pipeline.runfolder import (DROP_TPATH, PLACEMENT_TPATH, ROOM_PROXY_TPATH, SELECTION_TPATH, SUMMARY_TPATH,
+                                file_stamp, list_scenes, load_object_proxy, load_objects, load_scan, load_selection,
+                                path, save_placement)
+from pipeline.stages import Item, Stage, StageContext
 from pipeline.types import Placement
 
 log = logging.getLogger(__name__)
@@ -189,7 +189,7 @@ def finish(ctx: StageContext, results: dict[str, dict]) -> None:
     for r in results.values():
         counts[r["verdict"]] = counts.get(r["verdict"], 0) + 1
     total = sum(counts.values())
-    atomic_write_json(ctx.stage_dir / "summary.json",
+    atomic_write_json(path(ctx.run_dir, SUMMARY_TPATH, stage=ctx.stage),
                       {"drops": total, "verdicts": counts,
                        "accepted_share": (counts.get("accepted", 0) / total) if total else 0.0})
     rejected = total - counts.get("accepted", 0)

@@ -37,8 +37,9 @@ from pipeline.io import atomic_save_npz, load_npz
 from pipeline.runfolder import (DROP_TPATH, FRAMES_TPATH, SCAN_TPATH, TRACE_TPATH, FrameKey, RasterFrame,
                                 file_stamp, load_objects, load_raster_frame, load_scan, path, raster_frames,
                                 room_trace_mesh)
-from pipeline.runner import Item, Stage, StageContext, worker_count
+from pipeline.runner import worker_count
 from pipeline.scanformats.common import read_color
+from pipeline.stages import Item, Stage, StageContext
 from pipeline.threads import one_blas_thread
 
 log = logging.getLogger(__name__)
@@ -117,6 +118,44 @@ def _instances(rf: RasterFrame, library: dict) -> list:
     return out
 
 
+def object_passes(scene, cam, labels: np.ndarray, cfg: TraceConfig, rng: np.random.Generator, *, ao: bool,
+                  object_shadows=None) -> tuple:
+    """The objects' passes of one frame: ``(mask, fb, pbr, ao)``, as the stage traces and denoises them.
+
+    ``mask`` (H, W) bool: the traced pixels (:func:`~pipeline.trace.pbr.trace_mask` of ``labels (H, W)``);
+    ``fb``: :func:`~pipeline.trace.pbr.render`'s :class:`~pipeline.trace.pbr.FrameBuffers`; ``pbr``
+    (H, W, 3) and ``ao`` (H, W) float32: its passes after ``cfg.denoise``. ``ao=False`` traces no AO
+    (``ao`` is then ``fb.ao``, 1 everywhere). ``object_shadows``: the scene's
+    :class:`~pipeline.trace.pbr.ObjectShadows` (fit lighting), or None. Shared with ``bench/composite.py``,
+    which measures the blends on the stage's own passes.
+    """
+    from pipeline.trace.denoise import denoise, denoise_ao
+    from pipeline.trace.pbr import render, trace_mask
+
+    mask = trace_mask(labels, cfg.edge_band)
+    fb = render(scene, cam, mask, settings_from_config(cfg, ao=ao), rng, object_shadows=object_shadows)
+    pbr, ao_pass = fb.pbr, fb.ao
+    if cfg.denoise != "off":
+        pbr = denoise(fb.pbr, fb.albedo, fb.normal, fb.coverage > 0, method=cfg.denoise)
+        if ao:
+            ao_pass = denoise_ao(fb.ao, fb.normal, fb.coverage > 0, method=cfg.denoise)
+    return mask, fb, pbr, ao_pass
+
+
+def shadow_pass(scene, cam, labels: np.ndarray, cfg: TraceConfig, rng: np.random.Generator, *, room_isect=None,
+                obj_isect=None) -> np.ndarray:
+    """(H, W) float32 shadow ratio of one frame with ``cfg``'s settings (1 everywhere when
+    ``cfg.shadow_samples`` is 0); drawn from ``rng`` after :func:`object_passes`. Shared with
+    ``bench/composite.py``."""
+    from pipeline.trace.shadow import shadow_ratio
+
+    if cfg.shadow_samples <= 0:
+        return np.ones(labels.shape, np.float32)
+    return shadow_ratio(scene, cam, labels, rng, samples=cfg.shadow_samples, min_effect=cfg.shadow_min_effect,
+                        stride=cfg.shadow_stride, smooth=cfg.shadow_smooth, room_isect=room_isect,
+                        obj_isect=obj_isect)
+
+
 def trace_frame(ctx: StageContext, scene, rf: RasterFrame, labels: np.ndarray, *, room_isect=None,
                 obj_isect=None, exposure: float = 1.0, object_shadows=None) -> dict:
     """Trace one frame with a prebuilt scene and write its NPZ; returns the frame's summary.
@@ -126,9 +165,6 @@ def trace_frame(ctx: StageContext, scene, rf: RasterFrame, labels: np.ndarray, *
     scene's :class:`~pipeline.trace.pbr.ObjectShadows` (fit lighting), or None.
     """
     from pipeline.seeding import item_rng
-    from pipeline.trace.denoise import denoise, denoise_ao
-    from pipeline.trace.pbr import render, trace_mask
-    from pipeline.trace.shadow import shadow_ratio
 
     cfg = ctx.cfg.trace
     cam = rf.camera
@@ -136,18 +172,9 @@ def trace_frame(ctx: StageContext, scene, rf: RasterFrame, labels: np.ndarray, *
         raise InputError(f"raster frame {rf.key}: labels {labels.shape} do not match the frame size {cam.shape} "
                          f"in its JSON; re-run raster")
     rng = item_rng(ctx.cfg.run.seed, ctx.stage, str(rf.key))
-    mask = trace_mask(labels, cfg.edge_band)
-    with_ao = ao_used(ctx.cfg)
-    fb = render(scene, cam, mask, settings_from_config(cfg, ao=with_ao), rng, object_shadows=object_shadows)
-    pbr, ao = fb.pbr, fb.ao
-    if cfg.denoise != "off":
-        pbr = denoise(fb.pbr, fb.albedo, fb.normal, fb.coverage > 0, method=cfg.denoise)
-        if with_ao:
-            ao = denoise_ao(fb.ao, fb.normal, fb.coverage > 0, method=cfg.denoise)
-    sr = (shadow_ratio(scene, cam, labels, rng, samples=cfg.shadow_samples, min_effect=cfg.shadow_min_effect,
-                       stride=cfg.shadow_stride, smooth=cfg.shadow_smooth, room_isect=room_isect,
-                       obj_isect=obj_isect)
-          if cfg.shadow_samples > 0 else np.ones(labels.shape, np.float32))
+    mask, fb, pbr, ao = object_passes(scene, cam, labels, cfg, rng, ao=ao_used(ctx.cfg),
+                                      object_shadows=object_shadows)
+    sr = shadow_pass(scene, cam, labels, cfg, rng, room_isect=room_isect, obj_isect=obj_isect)
     atomic_save_npz(rf.key.path(ctx.run_dir, TRACE_TPATH), pbr=pbr.astype(np.float32),
                     ao=ao, coverage=fb.coverage, shadow_ratio=sr, albedo=fb.albedo, normal=fb.normal,
                     spp=np.minimum(fb.spp, 65535).astype(np.uint16), exposure=np.float32(exposure))

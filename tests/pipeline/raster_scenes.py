@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bench.reference import iou, raycast  # noqa: F401  (the tests' independent reference renderer)
+from tests.support.reference import iou, raycast  # noqa: F401  (the tests' independent reference renderer)
 from pipeline.geometry import look_at
 from pipeline.runfolder import RASTER_TPATH, read_raster_frame
 from pipeline.types import ObjectModel, Placement
@@ -174,7 +174,7 @@ def make_run(run_dir, rasterizer, *, width: int = W_RUN, height: int = H_RUN, fr
 
 def run_stage_direct(stage, run_dir, cfg) -> dict:
     """Run a stage's items in this process (plan, run_item, finish), as the runner does with one worker."""
-    from pipeline.runner import StageContext
+    from pipeline.stages import StageContext
 
     ctx = StageContext(run_dir=run_dir, cfg=cfg, stage=stage.name)
     results = {}

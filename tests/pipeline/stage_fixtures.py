@@ -9,7 +9,7 @@ import numpy as np
 
 from pipeline.errors import InputError
 from pipeline.io import atomic_save_npz
-from pipeline.runner import Item, Stage
+from pipeline.stages import Item, Stage
 
 
 def _plan(ctx):

@@ -295,7 +295,7 @@ def _make_run(run: Path, *, with_trace: bool = True, exposure: float | None = No
 
 def _ctx(run: Path, **composite):
     from pipeline.config import build_config
-    from pipeline.runner import StageContext
+    from pipeline.stages import StageContext
 
     return StageContext(run_dir=run, cfg=build_config({"composite": composite}), stage="composite")
 
@@ -360,7 +360,7 @@ def test_stage_on_the_trace_stages_real_output(tmp_path):
     from pipeline.config import build_config
     from pipeline.runfolder import load_scan, save_scan
     from pipeline.io import atomic_write_image
-    from pipeline.runner import StageContext
+    from pipeline.stages import StageContext
     from pipeline.trace.stage import STAGE as TRACE
     from tests.pipeline.test_trace_stage import _make_run as make_trace_run
 

@@ -377,7 +377,7 @@ def test_memory_stays_flat_over_many_frames(reference, tmp_path):
     import numpy as np
 
     from pipeline.config import load_config
-    from pipeline.runner import StageContext
+    from pipeline.stages import StageContext
     from pipeline.stages import get_stage
 
     _, ref, _ = reference
@@ -420,7 +420,7 @@ def test_partial_capture_gives_a_dataset(shared_data, tmp_path, capture):
     camera), and a table cropped out of that mesh (no floor; heights span 0.45 m), run end to end: drops
     are accepted on the visible surfaces, composited onto that photo and written as BOP, COCO and YOLO,
     with the registration record and the report the other formats get."""
-    from bench.captures import cropped_table_scan, one_view_scan
+    from tests.support.captures import cropped_table_scan, one_view_scan
 
     make = one_view_scan if capture == "one-view" else cropped_table_scan
     scan, mesh, _, _ = make(shared_data, tmp_path)

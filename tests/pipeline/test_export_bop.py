@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline import export, raster
+from pipeline import export, raster, runfolder
 from pipeline.config import build_config
 from pipeline.export_bop import bop_json_text, depth_png, models_info_mm, ply_bytes_mm, read_ply_mm
 from pipeline.runfolder import COMPOSITE_DEPTH_TPATH, COMPOSITE_TPATH, RASTER_TPATH, FrameKey
@@ -186,7 +186,7 @@ def test_export_is_deterministic_and_resumable(run, caplog):
     assert "left out" not in caplog.text
     index = json.loads((run["root"] / export.INDEX).read_text())["images"]
     assert {e["rgb_source"] for e in index} == {"composite"}
-    summary = json.loads((rd / "export" / export.SUMMARY).read_text())
+    summary = json.loads(runfolder.path(rd, runfolder.SUMMARY_TPATH, stage="export").read_text())
     assert summary == {"images": 6, "left_out": {}}
 
 
@@ -496,7 +496,7 @@ def test_frame_without_composite_is_left_out_of_every_format(run, tmp_path, capl
     yolo_labels = sorted(p.name for p in (root / "yolo" / "labels").rglob("*.txt"))
     assert yolo_imgs == [f"000000_{i:06d}.png" for i in range(5)]
     assert yolo_labels == [f"000000_{i:06d}.txt" for i in range(5)]
-    summary = json.loads((rd / "export" / export.SUMMARY).read_text())
+    summary = json.loads(runfolder.path(rd, runfolder.SUMMARY_TPATH, stage="export").read_text())
     assert summary["images"] == 5 and list(summary["left_out"]) == ["room/drop0001/f000002"]
     assert "no composite image" in summary["left_out"]["room/drop0001/f000002"]
     assert report.rejected(rd)["export"] == summary["left_out"]   # what run.json's "rejected" holds

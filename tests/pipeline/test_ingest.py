@@ -12,9 +12,9 @@ import pytest
 from pipeline import ingest, runfolder
 from pipeline.config import build_config
 from pipeline.errors import InputError, UserError
-from bench.reference import raycast
+from tests.support.reference import raycast
 from pipeline.reconstruct import drop_small_components, floor_up, fuse_tsdf
-from pipeline.runner import StageContext
+from pipeline.stages import StageContext
 from pipeline.scanformats.common import read_color, read_depth
 from pipeline.scanformats.detect import read_scan
 from pipeline.scanformats.mesh import canonical_order, ply_bytes, read_room_ply
@@ -315,7 +315,7 @@ def test_transforms_ply_file_path_mesh_or_point_cloud(tmp_path):
 def test_mesh_made_from_one_depth_frame_is_seen_not_enclosing(shared_data, tmp_path):
     """Issue 20: a mesh from one frame's depth (a kitchen seen from 1-3 m) does not enclose its camera, but
     the camera sees it: ingest accepts it. The same mesh in millimetres is still refused."""
-    from bench.captures import one_view_scan
+    from tests.support.captures import one_view_scan
 
     scan, mesh, P, F = one_view_scan(shared_data, tmp_path)
     cam = read_scan(scan).camera(0)

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from bench.reference import depth_photo_edge_distance
+from tests.support.reference import depth_photo_edge_distance
 from pipeline.registration import estimate_color_camera, pose_from_params
 from pipeline.scanformats.detect import read_scan
 

@@ -68,7 +68,7 @@ def test_failures_are_recorded_and_others_finish(tmp_path):
 
 
 def test_duplicate_item_keys_are_a_bug(tmp_path, monkeypatch):
-    from pipeline.runner import Item, Stage
+    from pipeline.stages import Item, Stage
 
     dup = Stage(name="dup", plan=lambda ctx: [Item("a"), Item("a")], run_item=lambda c, i: None)
     with pytest.raises(RuntimeError, match="duplicate"):

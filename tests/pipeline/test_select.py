@@ -352,7 +352,7 @@ def test_stage_on_an_ingested_scan(tmp_path):
     """The stage end to end through the ingest API: one item per scene, outputs, resume."""
     from pipeline.runfolder import save_scan
     from pipeline.io import atomic_write_image
-    from pipeline.runner import StageContext
+    from pipeline.stages import StageContext
     from pipeline.select import STAGE
     from pipeline.types import Scan
 

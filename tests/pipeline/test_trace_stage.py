@@ -15,7 +15,7 @@ from pipeline.config import build_config
 from pipeline.errors import InputError
 from pipeline.io import atomic_save_npz, atomic_write_bytes, atomic_write_json, load_npz
 from pipeline.runfolder import TRACE_TPATH, FrameKey
-from pipeline.runner import StageContext
+from pipeline.stages import StageContext
 from pipeline.trace.denoise import denoise, denoise_ao, joint_bilateral, oidn_available
 from pipeline.camera import Camera
 from pipeline.trace.scene import ObjectInstance, build_scene
