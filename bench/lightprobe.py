@@ -13,7 +13,7 @@ It also compares the total irradiance at the objects' places (``OBJECT_RISE_M`` 
 and the four horizontal world axes): the fitted room as the trace stage lights an object (the scan's surfaces and
 the box cells by the gather, the sampled lights by next-event estimation, :func:`emitter_irradiance`) against
 Mitsuba's meter with the emitters in view. ``bench.lighting``'s objects' brightness follows it to within 0.07 per
-channel (mean 0.03; session 26: the six rooms' fits at run seeds 0-2 and the oracle), from the fitted lights alone
+channel (mean 0.03 over the six rooms' fits at run seeds 0-2 and the oracle), from the fitted lights alone
 in seconds, without tracing a frame: a quick check of a change to the fit, not a score.
 
 Run after ``bench.lighting`` (its work folder holds each room's fit run)::

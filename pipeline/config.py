@@ -201,7 +201,7 @@ class TraceConfig:
 
     spp: int = option(8, "samples per pixel (upper bound when adaptive)", min=1)
     lighting: str = option("fit", "light source: fit = emitters recovered from the photos by inverse rendering "
-                           "(pipeline/trace/lightfit.py), scan = the room mesh's own radiance with clipped-photo "
+                           "(pipeline/trace/lightfit/), scan = the room mesh's own radiance with clipped-photo "
                            "lights, published = the published four lights",
                            choices=("fit", "scan", "published"))
     spp_min: int = option(8, "samples per pixel before the adaptive stop may end a pixel", min=1)

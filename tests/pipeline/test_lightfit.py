@@ -948,8 +948,8 @@ def test_the_unseen_side_of_a_sheet_sends_its_own_albedo_of_the_light_below():
     and unit radiance below, the irradiance pi F of the sheet over them (F: the analytic form factor to a
     parallel rectangle), from the gather's rays that meet its unseen side; those rays take the albedo of
     the sheet's own photographed top (the nearest fit point facing the way the top does: not a wall point
-    nearer still, not the floor), and the room's level where no such point is within reach. Zero here (as
-    before) left the suite's floor under its table short of light and its lamps too weak."""
+    nearer still, not the floor), and the room's level where no such point is within reach. Zero here leaves
+    the floor under a table short of light and the lamps too weak."""
     from pipeline.trace.intersect import EmbreeIntersector
     from pipeline.trace.lightfit.closure import sheet_backs, unseen_side
     from pipeline.trace.lightfit.transport import gather
@@ -1095,7 +1095,7 @@ def test_white_prior_sets_the_lights_colour_where_the_data_does_not(steep):
     where it can. On analytic curves (the levels' search leaving some out, as it does), the levels chosen
     minimise the objective plus prior as a brute-force search over the three channels' levels does; with a
     flat objective the light comes out white, with a steep one each channel keeps its own minimum, and
-    without the prior the choice is each channel's own minimum (the parabola), as before."""
+    without the prior the choice is each channel's own minimum (the parabola)."""
     from pipeline.trace.lightfit.albedo import ALBEDO_LEVELS, curve_minimum, level_search, white_levels
 
     x = np.asarray(ALBEDO_LEVELS)

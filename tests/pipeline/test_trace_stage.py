@@ -381,7 +381,7 @@ def test_photo_lighting_lights_what_the_photos_see_clipped_and_is_off_with_zero_
         out[name + "_pbr"] = float(a["pbr"].mean())
         STAGE.run_item(ctx, STAGE.plan(ctx)[0])
         assert FrameKey("room", 0, 0).path(run, TRACE_TPATH).read_bytes() == out[name]   # deterministic
-    # no photo, or photo lighting off: the mesh colours alone, as before
+    # no photo, or photo lighting off: the mesh colours alone
     assert out["off"] == out["none"]
     # a photo the mesh agrees with (no clipping, the closed room leaves no hole) changes nothing either
     assert out["grey"] == out["none"]
@@ -450,6 +450,6 @@ def test_fitted_lights_are_kept_per_scan_and_fitted_again_when_the_fit_changes(t
 
     key, made = fit()
     assert fit() == (key, made)                    # read back, not fitted again
-    monkeypatch.setattr(stage, "fit_code", lambda: "another version of lightfit.py")
+    monkeypatch.setattr(stage, "fit_code", lambda: "another version of the light fit")
     key2, made2 = fit()
     assert key2 != key and made2 != made           # an earlier version's lights are not read back
