@@ -24,7 +24,7 @@ class FitSettings:
     min_share: float = 0.5      # share of clipped observations that makes a mesh vertex an emitter
     sparsity: float = 0.4       # L1 weight on emission (columns normalised; relative to the data term's scale)
     level_tolerance: float = 0.05  # stage 1: the highest albedo level whose objective is within this share of the best
-    support_share: float = 0.999   # stages 2 and 3: the emitters carrying this share of the power emit, the rest reflect
+    support_share: float = 0.999   # stages 2 and 3: the emitters carrying this share of the power emit
     max_emitters: int = 24      # stage 2: at most this many unknown cells emit (0 = no second stage)
     refine: float = 0.1         # stage 3: metres, size of the lamps the emitting cells are refined into (0 = off)
     polish: int = 60            # stage 3: objective evaluations placing and sizing each cluster of lamps (0 = off)
