@@ -99,14 +99,14 @@ def gather(rl, points: np.ndarray, normals: np.ndarray, rays: int, rng: np.rando
     (the scan's surfaces, the side the photos saw), ``box`` (the closing box's cells), ``lights`` (emitters:
     not counted by the meter), ``unseen_side`` (a mesh triangle's other side: replaced in the fit); each (n, 3),
     and ``box_share`` (n,) the share of rays meeting the box. ``scene``: :func:`room_scene` of ``rl`` if built."""
-    from pipeline.trace.lightfit import _at, _gather
+    from pipeline.trace.lightfit.transport import at, gather
 
     isect, F, tn = scene or room_scene(rl)
     n = len(points)
-    _, hits, d = _gather(isect, np.asarray(points, np.float64), np.asarray(normals, np.float64), rays, rng, OFFSET_M)
+    _, hits, d = gather(isect, np.asarray(points, np.float64), np.asarray(normals, np.float64), rays, rng, OFFSET_M)
     hit = np.flatnonzero(hits.hit)
     rad = np.zeros((hits.hit.size, 3))
-    rad[hit] = _at(np.asarray(rl.radiance, np.float64), F, hits.prim[hit], hits.u[hit], hits.v[hit])
+    rad[hit] = at(np.asarray(rl.radiance, np.float64), F, hits.prim[hit], hits.u[hit], hits.v[hit])
     prim = np.where(hits.hit, hits.prim, -1)
     safe = np.maximum(prim, 0)
     mesh = (prim >= 0) & (prim < rl.num_mesh_tris)
@@ -127,7 +127,7 @@ def emitter_irradiance(rl, points: np.ndarray, normals: np.ndarray, samples: int
     the tracer's next-event estimation takes them, with visibility through the fitted room. A small bright lamp is
     what cosine-weighted gather rays miss most (in the light suite's ceiling room a 32768-ray gather put the
     objects at 0.84x the truth's light, the trace at 1.04x)."""
-    from pipeline.trace.lightfit import _sampled_irradiance
+    from pipeline.trace.lightfit.transport import sampled_irradiance
     from pipeline.trace.lights import build_area_lights, sample_area_lights
 
     isect, F, tn = scene or room_scene(rl)
@@ -142,7 +142,7 @@ def emitter_irradiance(rl, points: np.ndarray, normals: np.ndarray, samples: int
         f = F[tri]
         b = np.stack([1 - b1 - b2, b1, b2], axis=1)[:, :, None]
         lp, Le = (b * V[f]).sum(axis=1), (b * E[f]).sum(axis=1)
-        g = _sampled_irradiance(isect, np.tile(p, (samples, 1)), np.tile(n, (samples, 1)), lp, tn[tri], 1.0,
+        g = sampled_irradiance(isect, np.tile(p, (samples, 1)), np.tile(n, (samples, 1)), lp, tn[tri], 1.0,
                                 OFFSET_M, two_sided=True)
         out[i] = (g[:, None] * Le / pdf[:, None]).mean(axis=0)
     return out

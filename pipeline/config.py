@@ -201,7 +201,7 @@ class TraceConfig:
 
     spp: int = option(8, "samples per pixel (upper bound when adaptive)", min=1)
     lighting: str = option("fit", "light source: fit = emitters recovered from the photos by inverse rendering "
-                           "(pipeline/trace/lightfit.py), scan = the room mesh's own radiance with clipped-photo "
+                           "(pipeline/trace/lightfit/), scan = the room mesh's own radiance with clipped-photo "
                            "lights, published = the published four lights",
                            choices=("fit", "scan", "published"))
     spp_min: int = option(8, "samples per pixel before the adaptive stop may end a pixel", min=1)
@@ -275,18 +275,10 @@ class TraceConfig:
                              "power) as one rectangle: its height between the stage's depths, 0.25 m apart, its "
                              "place and its size; 0 = keep the squares of fit_refine metres where they were found",
                              min=0)
-    fit_albedo_shrink: float = option(0.0, "fit lighting: pull of each albedo patch toward the room's albedo level, "
-                                      "in mean points per patch (0 = none: the patches sharing one albedo by colour, "
-                                      "fit_albedo_group, keep a bright table top from becoming bright albedo instead "
-                                      "of light)", min=0.0)
     fit_albedo_group: float = option(0.03, "fit lighting: the room's surfaces whose photo chromaticity (r, g of "
                                      "r + g + b) falls in one bin this wide, and that face one way, share one albedo "
                                      "(one per material, seen under different light); 0 = one albedo per 0.5 m cell",
                                      min=0.0, max=1.0)
-    fit_light_colour: str = option("shared", "fit lighting: shared = the emitters the fit finds are one colour, "
-                                   "fitted (a room's lamps and windows are one colour far more often than its "
-                                   "walls'); free = each channel of each emitter on its own (coloured walls then "
-                                   "come out lit by coloured lamps)", choices=("shared", "free"))
     fit_white_prior: float = option(0.1, "fit lighting, last stage: pull of the fitted light's colour toward the "
                                     "photos' white, against each channel's own best albedo level (the objective "
                                     "is nearly flat there and the light's colour follows the level steeply: deep "

@@ -242,10 +242,10 @@ def fit_settings(cfg: TraceConfig, width: int):
     return FitSettings(points=cfg.fit_points, cell=cfg.fit_cell, stride=max(1, round(width / GRID_W)),
                        sparsity=cfg.fit_sparsity,
                        level_tolerance=cfg.fit_level_tolerance, max_emitters=cfg.fit_emitters,
-                       refine=cfg.fit_refine, polish=cfg.fit_polish, albedo_shrink=cfg.fit_albedo_shrink,
+                       refine=cfg.fit_refine, polish=cfg.fit_polish,
                        albedo_group=cfg.fit_albedo_group,
                        threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale,
-                       shared_colour=cfg.fit_light_colour == "shared", white_prior=cfg.fit_white_prior,
+                       white_prior=cfg.fit_white_prior,
                        white_patch=cfg.fit_white_patch, ceiling_albedo=cfg.fit_ceiling_albedo,
                        edge_colour=cfg.fit_edge_colour,
                        known_complete=cfg.lights_complete)
@@ -253,9 +253,11 @@ def fit_settings(cfg: TraceConfig, width: int):
 
 # the light fit's source, the modules it computes with and this one (which picks its photos and settings), relative
 # to pipeline/: part of the fitted lights' cache key
-FIT_SOURCES = ("trace/lightfit.py", "trace/photolights.py", "trace/intersect.py", "trace/sampling.py",
-               "trace/scene.py", "trace/stage.py", "color.py", "geometry.py", "camera.py", "seeding.py",
-               "scanformats/common.py")
+FIT_PACKAGE = ("__init__", "albedo", "closure", "colour", "fit", "lamps", "nnls", "observe", "result", "settings",
+               "solve", "stages", "transport", "unknowns")
+FIT_SOURCES = tuple(f"trace/lightfit/{m}.py" for m in FIT_PACKAGE) + (
+    "trace/photolights.py", "trace/intersect.py", "trace/sampling.py", "trace/scene.py", "trace/stage.py", "color.py",
+    "geometry.py", "camera.py", "seeding.py", "scanformats/common.py")
 
 
 @functools.lru_cache(maxsize=None)

@@ -1,4 +1,4 @@
-"""Light recovery by inverse rendering (pipeline/trace/lightfit.py): hard and bad input, and the closing box.
+"""Light recovery by inverse rendering (the pipeline/trace/lightfit package): hard and bad input, and the closing box.
 
 Accuracy against an independent renderer is in tests/pipeline/test_lighting_suite.py (Mitsuba 3).
 """
@@ -112,7 +112,7 @@ def test_the_unseen_ceiling_reflects_as_white_paint():
     room's walls here), its side cells with the upper walls' albedo; with 0 the ceiling takes the walls'
     too. A brighter ceiling sends more of the light back down, so the same photos need less emitted light,
     and the albedo handed to the trace stage says so on the box's top only."""
-    from pipeline.trace.lightfit import CEILING_ALBEDO
+    from pipeline.trace.lightfit.settings import CEILING_ALBEDO
 
     v, f, colors, fr = lit_from_above()
 
@@ -146,7 +146,7 @@ def test_cells_behind_the_mesh_are_those_it_hides_from_every_camera():
     one above its top, one behind the hole, one whose centre is behind the wall but a third of it behind the
     hole, and one that only one of two cameras has hidden are not; without cameras nothing is."""
     from pipeline.trace.intersect import EmbreeIntersector
-    from pipeline.trace.lightfit import _behind_the_mesh
+    from pipeline.trace.lightfit.closure import behind_the_mesh
 
     xs, zs = np.linspace(-2, 2, 9), np.linspace(0, 2, 5)          # 0.5 m squares
     V = np.array([[x, -2.0, z] for z in zs for x in xs])
@@ -168,10 +168,10 @@ def test_cells_behind_the_mesh_are_those_it_hides_from_every_camera():
         return centres[:, None] + half * np.array([[-1, 0, -1], [1, 0, -1], [1, 0, 1], [-1, 0, 1.0]])[None]
 
     cams = [np.array([0.0, 0.0, 1.3]), np.array([3.0, -1.9, 0.5])]
-    np.testing.assert_array_equal(_behind_the_mesh(isect, cells(0.01), cams[:1], 1e-3), [1, 0, 0, 1, 1])
-    np.testing.assert_array_equal(_behind_the_mesh(isect, cells(0.3), cams[:1], 1e-3), [1, 0, 0, 0, 0])
-    np.testing.assert_array_equal(_behind_the_mesh(isect, cells(0.01), cams, 1e-3), [1, 0, 0, 1, 0])
-    assert not _behind_the_mesh(isect, cells(0.3), [], 1e-3).any()
+    np.testing.assert_array_equal(behind_the_mesh(isect, cells(0.01), cams[:1], 1e-3), [1, 0, 0, 1, 1])
+    np.testing.assert_array_equal(behind_the_mesh(isect, cells(0.3), cams[:1], 1e-3), [1, 0, 0, 0, 0])
+    np.testing.assert_array_equal(behind_the_mesh(isect, cells(0.01), cams, 1e-3), [1, 0, 0, 1, 0])
+    assert not behind_the_mesh(isect, cells(0.3), [], 1e-3).any()
 
 
 def test_the_box_closes_the_room_behind_the_cameras_not_at_them():
@@ -180,7 +180,7 @@ def test_the_box_closes_the_room_behind_the_cameras_not_at_them():
     cameras tilt; the sides the scan reached stay where the scan ends; a camera looking straight down adds
     nothing behind it."""
     from pipeline.camera import Camera
-    from pipeline.trace.lightfit import MARGIN, box_extent
+    from pipeline.trace.lightfit.closure import MARGIN, box_extent
 
     behind = 0.5   # metres: the decision (box_extent's docstring), not read back from the module
 
@@ -304,7 +304,7 @@ def test_fitted_albedo_reaches_the_mesh_vertices(tmp_path):
     # the closing box's sides (the unseen upper walls) reflect like the walls, not like the room's level,
     # which the dark floor pulls down: their albedo is above the level by what the walls are; its top (the
     # unseen ceiling) as white paint
-    from pipeline.trace.lightfit import CEILING_ALBEDO
+    from pipeline.trace.lightfit.settings import CEILING_ALBEDO
 
     level = np.asarray(rl.summary["albedo_level"])
     ratio = np.asarray(rl.summary["unseen_albedo_ratio"])
@@ -326,7 +326,9 @@ def test_unseen_cells_take_the_upper_walls_albedo():
     """The albedo of the upper walls over the level, from points whose radiance is albedo / pi x irradiance:
     only walls (normal horizontal) above furniture height count, each wall point as one observation of one
     albedo (not shrunk toward the level); too few wall points leave the unseen cells at the level."""
-    from pipeline.trace.lightfit import LOW_FILL_M, MIN_FIT_POINTS, _wall_ratio
+    from pipeline.trace.lightfit.albedo import wall_ratio
+    from pipeline.trace.lightfit.closure import LOW_FILL_M
+    from pipeline.trace.lightfit.observe import MIN_FIT_POINTS
 
     rng = np.random.default_rng(0)
     n = 600
@@ -339,11 +341,11 @@ def test_unseen_cells_take_the_upper_walls_albedo():
     L = rho / np.pi * E
     w = rng.uniform(0.5, 2.0, n)
     level = np.array([0.4, 0.4, 0.25])
-    np.testing.assert_allclose(_wall_ratio(L, E, w, cos_up, height, level), np.array([0.6, 0.55, 0.5]) / level,
+    np.testing.assert_allclose(wall_ratio(L, E, w, cos_up, height, level), np.array([0.6, 0.55, 0.5]) / level,
                                rtol=1e-9)
     few = np.flatnonzero(kind == 0)[MIN_FIT_POINTS - 1:]
     keep = np.setdiff1d(np.arange(n), few)
-    np.testing.assert_array_equal(_wall_ratio(L[keep], E[keep], w[keep], cos_up[keep], height[keep], level), 1.0)
+    np.testing.assert_array_equal(wall_ratio(L[keep], E[keep], w[keep], cos_up[keep], height[keep], level), 1.0)
 
 
 def render_ids(v, f, fr):
@@ -507,7 +509,7 @@ def test_lamp_candidates_stay_out_of_sight_and_in_free_space():
     """A ceiling cell gives hanging candidates, a wall cell only its own squares; a candidate a photo
     would have seen, or one with a shelf between it and its cell, is dropped."""
     from pipeline.trace.intersect import EmbreeIntersector
-    from pipeline.trace.lightfit import REFINE_DEPTHS, _lamp_candidates
+    from pipeline.trace.lightfit.lamps import REFINE_DEPTHS, lamp_candidates
 
     v, f = box_room((-2, -2, 0), (2, 2, 2.5), n=4)
     f = f[v[f].mean(axis=1)[:, 2] < 2.49]                     # no ceiling: the box's top is unseen
@@ -519,7 +521,7 @@ def test_lamp_candidates_stay_out_of_sight_and_in_free_space():
     ceil = np.flatnonzero((nrm[:, 2] < -0.5) & (np.abs(cen[:, 0]) < 0.2) & (np.abs(cen[:, 1] - 1.0) < 0.2))[:1]
     over_shelf = np.flatnonzero((nrm[:, 2] < -0.5) & (np.abs(cen[:, 0]) < 0.2) & (np.abs(cen[:, 1] + 1.5) < 0.2))[:1]
     wall = np.flatnonzero(nrm[:, 0] > 0.5)[:1]
-    q, n, parent = _lamp_candidates(isect, np.concatenate([ceil, over_shelf, wall]), BV, nrm, UP, 0.1, 1.5, [], 1e-3)
+    q, n, parent = lamp_candidates(isect, np.concatenate([ceil, over_shelf, wall]), BV, nrm, UP, 0.1, 1.5, [], 1e-3)
     per = {c: int((parent == c).sum()) for c in (ceil[0], over_shelf[0], wall[0])}
     assert per[ceil[0]] == 16 * len(REFINE_DEPTHS)             # 4 x 4 squares at every depth
     below = q[parent == over_shelf[0]].mean(axis=1)[:, 2] < 2.0
@@ -530,7 +532,7 @@ def test_lamp_candidates_stay_out_of_sight_and_in_free_space():
     from pipeline.camera import Camera
 
     cam = Camera(K=K, T_c2w=look_at((0.0, 1.0, 0.5), (0.0, 1.0001, 2.5)), width=W, height=H)
-    q2, _, p2 = _lamp_candidates(isect, ceil, BV, nrm, UP, 0.1, 1.5, [cam], 1e-3)
+    q2, _, p2 = lamp_candidates(isect, ceil, BV, nrm, UP, 0.1, 1.5, [cam], 1e-3)
     assert (p2 == ceil[0]).sum() < per[ceil[0]] and (p2 == ceil[0]).sum() >= 16
 
 
@@ -638,7 +640,7 @@ def test_a_clipped_region_lights_the_unseen_cells_as_its_area_says():
     panel over four run seeds). A 0.5 m square region 1 m above a cell facing it: pi x Howell's configuration
     factor, to 3 %; nothing from its other side unless it emits both ways; one sample per pair is as unbiased."""
     from pipeline.trace.intersect import EmbreeIntersector
-    from pipeline.trace.lightfit import _region_columns
+    from pipeline.trace.lightfit.transport import region_columns
 
     square = np.array([[-0.25, -0.25, 1.0], [0.25, -0.25, 1.0], [0.25, 0.25, 1.0], [-0.25, 0.25, 1.0]])
     faces = np.array([[0, 2, 1], [0, 3, 2]])                 # wound to face down
@@ -653,7 +655,7 @@ def test_a_clipped_region_lights_the_unseen_cells_as_its_area_says():
     want = np.pi * 4 * parallel_rectangle_factor(0.25, 0.25, 1.0)
 
     def cols(side, samples=4096, seed=0):
-        return _region_columns(isect, P, N, [np.arange(2)], corners, tn, areas, samples, side,
+        return region_columns(isect, P, N, [np.arange(2)], corners, tn, areas, samples, side,
                                np.random.default_rng(seed), 1e-4)[:, 0]
 
     front, back, both = cols(1), cols(-1), cols(0)
@@ -712,11 +714,11 @@ def _kkt_gap(Q, g, lam, x) -> float:
 
 @pytest.mark.parametrize("cond", [1e2, 1e8])
 def test_emission_solve_reaches_the_minimum_of_ill_conditioned_problems(cond):
-    """The emission solve (:func:`pipeline.trace.lightfit._nnls`) ends at the constrained minimum: the
+    """The emission solve (:func:`pipeline.trace.lightfit.nnls.nnls`) ends at the constrained minimum: the
     optimality (KKT) conditions hold, also when the columns are nearly dependent (condition 1e8, as
     neighbouring box cells seen from the same points are; 400 projected-gradient steps stopped short there),
     with a column that sends no light, and with a duplicated column."""
-    from pipeline.trace.lightfit import _nnls
+    from pipeline.trace.lightfit.nnls import nnls
 
     rng = np.random.default_rng(3)
     n, k = 200, 40
@@ -728,7 +730,7 @@ def test_emission_solve_reaches_the_minimum_of_ill_conditioned_problems(cond):
     y = B @ np.abs(rng.normal(size=k)) + 0.01 * rng.normal(size=n)
     Q, g = B.T @ B, B.T @ y
     lam = np.full(k, 1e-4 * float(np.abs(g).max()))
-    x = _nnls(Q, g, lam)
+    x = nnls(Q, g, lam)
     assert np.all(np.isfinite(x)) and np.all(x >= 0) and x[5] == 0
     assert _kkt_gap(Q, g, lam, x) < 1e-6
     # a worse point cannot be the answer: the objective is no higher than at any of a few feasible guesses
@@ -737,47 +739,47 @@ def test_emission_solve_reaches_the_minimum_of_ill_conditioned_problems(cond):
         assert f(x) <= f(z) + 1e-12 * abs(f(z))
     # the same answer for a problem a million times smaller (scipy 1.12-1.14 stop on an absolute tolerance)
     # (columns 6 and 7 may split their share differently: compare the optimality, not the vectors)
-    xs = _nnls(Q * 1e-12, g * 1e-12, lam * 1e-12)
+    xs = nnls(Q * 1e-12, g * 1e-12, lam * 1e-12)
     assert _kkt_gap(Q, g, lam, xs) < 1e-6 and abs(f(xs) - f(x)) <= 1e-9 * abs(f(x))
 
 
 def test_emission_solve_without_an_answer_emits_nothing(caplog):
     """A non-finite entry (a degenerate column upstream) gives no emission and a warning, never NaN."""
-    from pipeline.trace.lightfit import _nnls
+    from pipeline.trace.lightfit.nnls import nnls
 
     Q = np.eye(3)
     Q[1, 1] = np.nan
     with caplog.at_level(logging.WARNING):
-        x = _nnls(Q, np.ones(3), np.zeros(3))
+        x = nnls(Q, np.ones(3), np.zeros(3))
     assert np.array_equal(x, np.zeros(3))
     assert "non-finite" in caplog.text
 
 
 def test_a_lamp_seen_through_a_gap_pays_for_its_size():
-    """The sparsity prior's sliver rule (:func:`pipeline.trace.lightfit._sliver_rule`), per unit of light
+    """The sparsity prior's sliver rule (:func:`pipeline.trace.lightfit.solve.sliver_rule`), per unit of light
     sent to the points (price / column): a small lamp seen as well as its size says pays what a cell does
     (small is not suspicious); one the points see a tenth as well (a square behind a wall, through a gap)
     pays ten times as much; one seen a hundredth as well is not fitted."""
-    from pipeline.trace.lightfit import _sliver_rule
+    from pipeline.trace.lightfit.solve import sliver_rule
 
     med, dens = 2.0, 12.5                      # the median cell's column; its column per m2 (0.16 m2 cell)
     area = 0.01                                # 10 cm lamps
     expected = np.full(3, area * dens)
     norms = expected * np.array([1.0, 0.1, 0.01])
-    fitted, price = _sliver_rule(norms, expected, med)
+    fitted, price = sliver_rule(norms, expected, med)
     assert fitted.tolist() == [True, True, False]
     per_light = price / norms
     assert np.isclose(per_light[0], 1 / med)                    # as a whole cell per unit of light
     assert np.isclose(per_light[1], 10 / med)
-    cell_fit, cell_price = _sliver_rule(np.array([med, 0.5 * med]), np.full(2, med), med)
+    cell_fit, cell_price = sliver_rule(np.array([med, 0.5 * med]), np.full(2, med), med)
     assert cell_fit.all() and np.allclose(cell_price, 1.0)     # stage 1: at least the median cell's price
 
 
 def test_shared_colour_emission():
-    """With ``shared_colour`` every unknown emits one colour: light of one colour from two emitters is
+    """The emission solve makes every unknown one colour: light of one colour from two emitters is
     recovered exactly (emitters and colour), and red light from one emitter with green from another, which
     the channels solved on their own reproduce, becomes one colour for both."""
-    from pipeline.trace.lightfit import _solve_emission
+    from pipeline.trace.lightfit.solve import solve_channels, solve_emission
 
     rng = np.random.default_rng(5)
     n, k = 300, 6
@@ -788,15 +790,15 @@ def test_shared_colour_emission():
     e_true[1] = 2.0 * np.array([1.0, 0.8, 0.5])
     e_true[4] = 0.7 * np.array([1.0, 0.8, 0.5])
     L = rho / np.pi * (A @ e_true)
-    e, _ = _solve_emission(rho, zeros, [A, A, A], L, w, lb, lam, 0.0, shared_colour=True)
+    e, _ = solve_emission(rho, zeros, [A, A, A], L, w, lb, lam, 0.0)
     np.testing.assert_allclose(e, e_true, atol=1e-6)
     # red from emitter 1, green from emitter 4
     e_mixed = np.zeros((k, 3))
     e_mixed[1, 0], e_mixed[4, 1] = 2.0, 2.0
     L = rho / np.pi * (A @ e_mixed)
-    free, _ = _solve_emission(rho, zeros, [A, A, A], L, w, lb, lam, 0.0, shared_colour=False)
+    free, _ = solve_channels(rho, zeros, [A, A, A], L, w, lb, lam, 0.0)
     np.testing.assert_allclose(free, e_mixed, atol=1e-6)
-    one, _ = _solve_emission(rho, zeros, [A, A, A], L, w, lb, lam, 0.0, shared_colour=True)
+    one, _ = solve_emission(rho, zeros, [A, A, A], L, w, lb, lam, 0.0)
     lit = one.sum(axis=1) > 1e-6
     assert lit.sum() >= 2
     chroma = one[lit] / one[lit].sum(axis=1, keepdims=True)
@@ -808,7 +810,8 @@ def test_shared_colour_is_one_per_kind_of_emitter():
     """The emitters the photos saw clipped (a lower bound) and the ones no photo saw are two kinds with a colour
     each: a warm lamp in view and a neutral fill no photo saw are both recovered exactly, which one colour for
     every emitter cannot do (it leaves a residual and the fill takes the lamp's colour)."""
-    from pipeline.trace.lightfit import _shared_colour, _solve_emission
+    from pipeline.trace.lightfit.colour import shared_colour
+    from pipeline.trace.lightfit.solve import solve_emission
 
     rng = np.random.default_rng(9)
     n, k = 400, 6
@@ -822,7 +825,7 @@ def test_shared_colour_is_one_per_kind_of_emitter():
     e_true[0] += 4.0 * warm
     e_true[4] = 1.2 * fill
     L = rho / np.pi * (A @ e_true)
-    e, _ = _solve_emission(rho, zeros, [A, A, A], L, w, lb, lam, 0.0, shared_colour=True)
+    e, _ = solve_emission(rho, zeros, [A, A, A], L, w, lb, lam, 0.0)
     np.testing.assert_allclose(e, e_true, atol=1e-6)
     # the same problem with one colour for all: the fill is as warm as the lamp and the photos are not explained
     s = w * rho[:, 0] / np.pi
@@ -832,7 +835,7 @@ def test_shared_colour_is_one_per_kind_of_emitter():
         y = w * L[:, c] - s * (A @ lb[:, c])
         parts.append((B, y, B.T @ B, B.T @ y, lam))
     x0 = e_true - lb
-    x, col = _shared_colour(parts, x0, np.zeros(k, np.int64))
+    x, col = shared_colour(parts, x0, np.zeros(k, np.int64))
     assert np.allclose(col, col[0]) and col[0, 2] / col[0, 0] < 0.7
     res = sum(float(np.sum((parts[c][0] @ (x * col[:, c]) - parts[c][1]) ** 2)) for c in range(3))
     assert res > 1e-6 * sum(float(parts[c][1] @ parts[c][1]) for c in range(3))
@@ -842,7 +845,7 @@ def test_emission_solve_shares_products_only_where_channels_agree():
     """Channels with the same columns and albedo share one product (stage 1's grey start): the emission and
     the prior's cost are bit for bit those of channels given copies (no sharing), also where the columns are
     shared but one channel's albedo differs, or the albedo agrees but the columns do not."""
-    from pipeline.trace.lightfit import _solve_emission
+    from pipeline.trace.lightfit.solve import solve_channels
 
     rng = np.random.default_rng(11)
     n, k = 400, 9
@@ -856,8 +859,8 @@ def test_emission_solve_shares_products_only_where_channels_agree():
     tinted[:, 2] = rng.uniform(0.2, 0.6, n)
     for cols, rho in (([A, A, A], grey), ([A, A, A], tinted), ([A, A2, A], grey)):
         for sparsity in (0.0, 0.3):
-            got = _solve_emission(rho, Ek, cols, L, w, lb, lam, sparsity)
-            alone = _solve_emission(rho, Ek, [c.copy() for c in cols], L, w, lb, lam, sparsity)
+            got = solve_channels(rho, Ek, cols, L, w, lb, lam, sparsity)
+            alone = solve_channels(rho, Ek, [c.copy() for c in cols], L, w, lb, lam, sparsity)
             assert np.array_equal(got[0], alone[0]) and np.array_equal(got[1], alone[1])
             assert np.all(got[0] >= lb) and got[0].sum() > lb.sum()     # the solves did something
 
@@ -868,12 +871,12 @@ def test_albedo_level_search_reaches_dark_rooms(best):
     search grid and its parabola, not the grid's end: the light suite's red- and green-walled room has walls
     of 0.06-0.09 in blue, and 7-Scenes' kitchen sat at the old grid's floor of 0.15 in every channel. A
     residual that falls all the way to the grid's darkest level stops there."""
-    from pipeline.trace.lightfit import ALBEDO_LEVELS, ALBEDO_RANGE, _curve_minimum
+    from pipeline.trace.lightfit.albedo import ALBEDO_LEVELS, ALBEDO_RANGE, curve_minimum
 
     x = np.asarray(ALBEDO_LEVELS)
     assert x.min() >= ALBEDO_RANGE[0] and x.max() <= ALBEDO_RANGE[1]
     y = np.stack([(x - best) ** 2 + 1.0, np.log(x / best) ** 2 + 1.0, x], axis=1)   # two shapes of curve, one falling
-    found = _curve_minimum(x, y)
+    found = curve_minimum(x, y)
     np.testing.assert_allclose(found[0], best, rtol=0.02)
     np.testing.assert_allclose(found[1], best, rtol=0.1)
     assert found[2] == x.min()
@@ -895,7 +898,7 @@ def test_the_side_of_a_sheet_no_camera_saw_is_found():
     seen top; walls seen from inside are seen. The cameras' votes find which side they see, flipped with the
     mesh's winding, and neither on a mesh whose triangles face both ways."""
     from pipeline.trace.intersect import EmbreeIntersector
-    from pipeline.trace.lightfit import _unseen_side
+    from pipeline.trace.lightfit.closure import unseen_side
 
     v, f, nf_room = room_with_table()
     rng = np.random.default_rng(0)
@@ -914,7 +917,7 @@ def test_the_side_of_a_sheet_no_camera_saw_is_found():
         assert h.hit.all()
         p_ = v[faces]
         tn = np.cross(p_[:, 1] - p_[:, 0], p_[:, 2] - p_[:, 0])
-        return _unseen_side(h.prim, dx, tn, len(faces), side)
+        return unseen_side(h.prim, dx, tn, len(faces), side)
 
     np.testing.assert_array_equal(answer(f, 1), want)
     np.testing.assert_array_equal(answer(f[:, ::-1], -1), want)       # wound the other way, seen from behind
@@ -924,7 +927,7 @@ def test_the_side_of_a_sheet_no_camera_saw_is_found():
     h = isect.intersect(ox[:m], dx[:m])
     p_ = v[f]
     tn = np.cross(p_[:, 1] - p_[:, 0], p_[:, 2] - p_[:, 0])
-    assert not _unseen_side(h.prim, dx[:m], tn, nf_room, 1).any()
+    assert not unseen_side(h.prim, dx[:m], tn, nf_room, 1).any()
 
     colors = np.full((len(v), 3), 120, np.uint8)
     fr = frames(6, 120)
@@ -945,10 +948,11 @@ def test_the_unseen_side_of_a_sheet_sends_its_own_albedo_of_the_light_below():
     and unit radiance below, the irradiance pi F of the sheet over them (F: the analytic form factor to a
     parallel rectangle), from the gather's rays that meet its unseen side; those rays take the albedo of
     the sheet's own photographed top (the nearest fit point facing the way the top does: not a wall point
-    nearer still, not the floor), and the room's level where no such point is within reach. Zero here (as
-    before) left the suite's floor under its table short of light and its lamps too weak."""
+    nearer still, not the floor), and the room's level where no such point is within reach. Zero here leaves
+    the floor under a table short of light and the lamps too weak."""
     from pipeline.trace.intersect import EmbreeIntersector
-    from pipeline.trace.lightfit import _gather, _sheet_backs, _unseen_side
+    from pipeline.trace.lightfit.closure import sheet_backs, unseen_side
+    from pipeline.trace.lightfit.transport import gather
 
     v, f, _ = room_with_table()
     isect = EmbreeIntersector(v.astype(np.float32), f.astype(np.int32))
@@ -962,9 +966,9 @@ def test_the_unseen_side_of_a_sheet_sends_its_own_albedo_of_the_light_below():
     P = np.concatenate([floor, top])
     N = np.tile([0.0, 0.0, 1.0], (len(P), 1))
     M = 4096
-    owner, hits, d = _gather(isect, P, N, M, rng, 1e-4)
+    owner, hits, d = gather(isect, P, N, M, rng, 1e-4)
     hit = np.flatnonzero(hits.hit)
-    back = hit[_unseen_side(hits.prim[hit], d[hit], tn, len(f), 1)]
+    back = hit[unseen_side(hits.prim[hit], d[hit], tn, len(f), 1)]
     assert np.all(owner[back] < nf)                           # only the floor points see the sheet's back
     pos = P[owner[back]] + hits.t[back, None] * d[back]
     seen_n = tn[hits.prim[back]]                             # the cameras see the fronts (+z): the top
@@ -973,16 +977,16 @@ def test_the_unseen_side_of_a_sheet_sends_its_own_albedo_of_the_light_below():
     Pw = np.concatenate([P, wall])
     Nw = np.concatenate([N, np.tile([1.0, 0.0, 0.0], (len(wall), 1))])
     patch = np.r_[np.zeros(nf, np.int64), np.ones(len(top), np.int64), np.full(len(wall), 2)]  # floor, top, wall
-    B = _sheet_backs(Pw, Nw, patch, 3, owner[back], pos, seen_n, 0.5, np.pi / M).toarray()
+    B = sheet_backs(Pw, Nw, patch, 3, owner[back], pos, seen_n, 0.5, np.pi / M).toarray()
     want = np.pi * 4 * parallel_rectangle_factor(0.6, 0.4, 0.8)       # F = 0.31 of the floor's sky
     got = B[:nf].sum(axis=1)
     np.testing.assert_allclose(got.mean(), want, rtol=0.03)              # 8 x 4096 rays: 0.8 % noise
     np.testing.assert_allclose(got, want, rtol=0.1)
     assert B[:nf, 1].sum() == got.sum()                                 # all on the top's albedo
     assert B[nf:].sum() == 0
-    far = _sheet_backs(floor, N[:nf], patch[:nf], 3, owner[back], pos, seen_n, 0.5, np.pi / M).toarray()
+    far = sheet_backs(floor, N[:nf], patch[:nf], 3, owner[back], pos, seen_n, 0.5, np.pi / M).toarray()
     np.testing.assert_allclose(far[:, 3], got)                          # no top photographed: the level
-    empty = _sheet_backs(P, N, patch, 3, owner[:0], pos[:0], seen_n[:0], 0.5, 1.0)
+    empty = sheet_backs(P, N, patch, 3, owner[:0], pos[:0], seen_n[:0], 0.5, 1.0)
     assert empty.shape == (len(P), 4) and empty.nnz == 0
 
 
@@ -992,7 +996,7 @@ def test_relative_weights_do_not_follow_the_texture():
     of one over each point's own value are biased low by over 10 % (the suite's fit: albedo x light
     0.69-0.86x the photos). Neighbours are on the same surface: a crease with a 10x brighter wall does not
     change the floor's weights."""
-    from pipeline.trace.lightfit import _relative_weights
+    from pipeline.trace.lightfit.albedo import relative_weights
 
     rng = np.random.default_rng(4)
     g = rng.uniform(0, 2, (3600, 2))
@@ -1007,13 +1011,13 @@ def test_relative_weights_do_not_follow_the_texture():
         r = w * model
         return float(r @ (w * photo) / (r @ r))
 
-    assert abs(gain(_relative_weights(P, N, photo)) - 1.0) < 0.03
+    assert abs(gain(relative_weights(P, N, photo)) - 1.0) < 0.03
     assert gain(1.0 / photo) < 0.9                      # the old weights, for contrast
     # a bright wall meeting the floor along x = 0: the floor's weights stay what they were
     wall = np.column_stack([np.zeros(len(g)), g[:, 0], g[:, 1]])
     Pw, Nw = np.concatenate([P, wall]), np.concatenate([N, np.tile([1.0, 0.0, 0.0], (len(g), 1))])
-    ww = _relative_weights(Pw, Nw, np.concatenate([photo, 10.0 * photo]))
-    floor_only = _relative_weights(P, N, photo)
+    ww = relative_weights(Pw, Nw, np.concatenate([photo, 10.0 * photo]))
+    floor_only = relative_weights(P, N, photo)
     # (the 5 % floor term moves with the median luminance of all points; compare the medians' part)
     inv_a = 1.0 / ww[:len(P)] - 0.05 * float(np.median(np.concatenate([photo, 10.0 * photo])))
     inv_b = 1.0 / floor_only - 0.05 * float(np.median(photo))
@@ -1023,7 +1027,7 @@ def test_relative_weights_do_not_follow_the_texture():
 def test_albedo_groups_join_one_material_under_different_light():
     """Cells of one paint, lit 1x to 8x, share one albedo; a wood of another colour, and the same paint on
     a surface facing another way, get their own."""
-    from pipeline.trace.lightfit import _chromaticity_groups, _patch_keys
+    from pipeline.trace.lightfit.albedo import chromaticity_groups, patch_keys
 
     rng = np.random.default_rng(1)
     paint, wood = np.array([0.6, 0.55, 0.5]), np.array([0.45, 0.25, 0.1])
@@ -1037,11 +1041,11 @@ def test_albedo_groups_join_one_material_under_different_light():
         L.append(alb * light * rng.uniform(0.95, 1.05, (50, 1)))    # a little texture, no chroma change
         what.append(np.full(50, i))
     P, N, L, what = map(np.concatenate, (P, N, L, what))
-    keyp = _patch_keys(P, N, 0.5)
+    keyp = patch_keys(P, N, 0.5)
     _, cell = np.unique(keyp, axis=0, return_inverse=True)
     cell = cell.ravel()
     assert cell.max() + 1 == 5
-    group, ng = _chromaticity_groups(cell, keyp, L, 0.03)
+    group, ng = chromaticity_groups(cell, keyp, L, 0.03)
     assert ng == 3
     first = [group[what == i][0] for i in range(5)]
     assert all(np.all(group[what == i] == first[i]) for i in range(5))
@@ -1055,7 +1059,7 @@ def test_level_search_picks_what_the_whole_grid_picks_from_fewer_levels():
     at different levels, at either end of the grid, between two grid levels, and a flat-bottomed one where
     the tolerance rule reaches past the minimum), the lowest level, the parabola through it and the highest
     level within the tolerance are the whole grid's, and levels are left out."""
-    from pipeline.trace.lightfit import ALBEDO_LEVELS, _curve_minimum, _level_search
+    from pipeline.trace.lightfit.albedo import ALBEDO_LEVELS, curve_minimum, level_search
 
     x = np.asarray(ALBEDO_LEVELS)
     rng = np.random.default_rng(5)
@@ -1072,12 +1076,12 @@ def test_level_search_picks_what_the_whole_grid_picks_from_fewer_levels():
 
         full = np.stack([evaluate(v) for v in x])
         calls.clear()
-        got = _level_search(evaluate, None, tolerance=0.05)
+        got = level_search(evaluate, None, tolerance=0.05)
         assert len(calls) == len(set(calls)) < len(x)
         done = np.isfinite(got[:, 0])
         np.testing.assert_array_equal(got[done], full[done])
         assert np.array_equal(np.argmin(got, axis=0), np.argmin(full, axis=0))
-        np.testing.assert_array_equal(_curve_minimum(x, got), _curve_minimum(x, full))
+        np.testing.assert_array_equal(curve_minimum(x, got), curve_minimum(x, full))
         for c in range(3):
             ok_full = np.flatnonzero(full[:, c] <= full[:, c].min() * 1.05).max()
             ok_got = np.flatnonzero(got[:, c] <= got[:, c].min() * 1.05).max()
@@ -1091,8 +1095,8 @@ def test_white_prior_sets_the_lights_colour_where_the_data_does_not(steep):
     where it can. On analytic curves (the levels' search leaving some out, as it does), the levels chosen
     minimise the objective plus prior as a brute-force search over the three channels' levels does; with a
     flat objective the light comes out white, with a steep one each channel keeps its own minimum, and
-    without the prior the choice is each channel's own minimum (the parabola), as before."""
-    from pipeline.trace.lightfit import ALBEDO_LEVELS, _curve_minimum, _level_search, _white_levels
+    without the prior the choice is each channel's own minimum (the parabola)."""
+    from pipeline.trace.lightfit.albedo import ALBEDO_LEVELS, curve_minimum, level_search, white_levels
 
     x = np.asarray(ALBEDO_LEVELS)
     best = np.array([0.3, 0.45, 0.4])       # each channel's own minimum
@@ -1105,10 +1109,10 @@ def test_white_prior_sets_the_lights_colour_where_the_data_does_not(steep):
     def logp(v):
         return np.log((white / np.asarray(v)) ** 2)
 
-    got_res = _level_search(lambda v: res(np.full(3, v)), None)
+    got_res = level_search(lambda v: res(np.full(3, v)), None)
     assert np.isinf(got_res).any()
     power = np.where(np.isfinite(got_res), np.exp(logp(x[:, None] * np.ones(3))), np.nan)
-    lv = _white_levels(got_res, power, prior)
+    lv = white_levels(got_res, power, prior)
 
     def total(l3):     # (..., 3) levels -> objective + prior, exactly
         lp = logp(l3)
@@ -1124,7 +1128,7 @@ def test_white_prior_sets_the_lights_colour_where_the_data_does_not(steep):
         assert np.ptp(logp(best)) > 0.5
     if steep >= 50.0:         # the data decides
         np.testing.assert_allclose(lv, best, rtol=0.02)
-    np.testing.assert_array_equal(_white_levels(got_res, power, 0.0), _curve_minimum(x, got_res))
+    np.testing.assert_array_equal(white_levels(got_res, power, 0.0), curve_minimum(x, got_res))
 
 
 def test_the_brightest_surfaces_are_the_largest_brightest_patches():
@@ -1132,7 +1136,7 @@ def test_the_brightest_surfaces_are_the_largest_brightest_patches():
     of the points, the brightest first, until a tenth of the points; a brighter patch of a few points (a lamp's
     edge, a sliver the light misses) is not one of them, nor the large dark floor. Without a patch that large,
     nothing is said."""
-    from pipeline.trace.lightfit import _brightest_colour
+    from pipeline.trace.lightfit.albedo import brightest_colour
 
     rho = np.array([[0.6, 0.6, 0.6],      # 300 points: the brightest large patch
                     [0.95, 0.95, 0.95],   # 5 points: brighter, too small
@@ -1141,11 +1145,11 @@ def test_the_brightest_surfaces_are_the_largest_brightest_patches():
     patch = np.repeat([0, 1, 2, 3], [300, 5, 300, 4395])
     np.random.default_rng(0).shuffle(patch)
     # 300 points fall short of a tenth of 5000: the next patch joins, equally weighted
-    np.testing.assert_allclose(_brightest_colour(rho, patch), [0.5, 0.55, 0.65])
+    np.testing.assert_allclose(brightest_colour(rho, patch), [0.5, 0.55, 0.65])
     # a patch holding a tenth alone is all of it
     patch2 = np.repeat([0, 1, 2, 3], [500, 5, 300, 4195])
-    np.testing.assert_allclose(_brightest_colour(rho, patch2), [0.6, 0.6, 0.6])
-    assert _brightest_colour(np.full((1000, 3), 0.5), np.arange(1000)) is None
+    np.testing.assert_allclose(brightest_colour(rho, patch2), [0.6, 0.6, 0.6])
+    assert brightest_colour(np.full((1000, 3), 0.5), np.arange(1000)) is None
 
 
 @pytest.mark.parametrize("steep", [0.002, 0.05, 50.0])
@@ -1155,7 +1159,7 @@ def test_white_patch_makes_the_brightest_surfaces_grey_where_the_data_does_not(s
     surfaces toward grey as a brute-force search over the three channels' levels does. A flat objective makes
     them grey (a warm room's light comes out warm, where the light's own prior made it white); a steep one
     keeps each channel's minimum; without the pull each channel's own minimum (the parabola)."""
-    from pipeline.trace.lightfit import ALBEDO_LEVELS, _curve_minimum, _grey_levels, _level_search
+    from pipeline.trace.lightfit.albedo import ALBEDO_LEVELS, curve_minimum, grey_levels, level_search
 
     x = np.asarray(ALBEDO_LEVELS)
     best = np.array([0.38, 0.28, 0.17])      # each channel's own minimum
@@ -1168,9 +1172,9 @@ def test_white_patch_makes_the_brightest_surfaces_grey_where_the_data_does_not(s
     def log_t(l3):
         return np.log(bright * np.asarray(l3) / best)
 
-    got_res = _level_search(lambda v: res(np.full(3, v)), None)
+    got_res = level_search(lambda v: res(np.full(3, v)), None)
     assert np.isinf(got_res).any()
-    lv = _grey_levels(got_res, bright, best, prior)
+    lv = grey_levels(got_res, bright, best, prior)
 
     def total(l3):
         lt = log_t(l3)
@@ -1184,7 +1188,7 @@ def test_white_patch_makes_the_brightest_surfaces_grey_where_the_data_does_not(s
         assert lv[2] / lv[0] > 1.25 * best[2] / best[0]   # blue's level up: the light warmer than the data's
     if steep >= 50.0:         # the data decides
         np.testing.assert_allclose(lv, best, rtol=0.02)
-    np.testing.assert_array_equal(_grey_levels(got_res, bright, best, 0.0), _curve_minimum(x, got_res))
+    np.testing.assert_array_equal(grey_levels(got_res, bright, best, 0.0), curve_minimum(x, got_res))
 
 
 def _square(cx: float, cy: float, z: float, size: float = 0.1) -> np.ndarray:
@@ -1197,7 +1201,7 @@ def _square(cx: float, cy: float, z: float, size: float = 0.1) -> np.ndarray:
 def test_touching_lamps_are_one_cluster():
     """Squares side by side or corner to corner are one lamp, as are squares hung one above another; a square
     0.4 m away is another, and so is one facing another way."""
-    from pipeline.trace.lightfit import _lamp_clusters
+    from pipeline.trace.lightfit.lamps import lamp_clusters
 
     q = np.array([_square(0.0, 0.0, 2.0), _square(0.1, 0.0, 2.0), _square(0.1, 0.1, 2.0),   # an L of three
                   _square(0.2, 0.2, 2.0),                                                  # corner to corner
@@ -1206,21 +1210,21 @@ def test_touching_lamps_are_one_cluster():
                   _square(0.0, 0.1, 2.0)])
     n = np.tile([0.0, 0.0, -1.0], (len(q), 1))
     n[6] = [1.0, 0.0, 0.0]                                                                 # facing a wall
-    groups = _lamp_clusters(q, n, 0.1)
+    groups = lamp_clusters(q, n, 0.1)
     assert [g.tolist() for g in groups] == [[0, 1, 2, 3, 4], [5], [6]]
 
 
 def test_a_cluster_starts_where_its_light_is():
     """The polish starts a cluster of squares at their power-weighted middle seen from below, in the plane of the
     square asked for; a square of 10 cm about that point turns the same way round the normal as the squares."""
-    from pipeline.trace.lightfit import _cluster_start, _rectangle
+    from pipeline.trace.lightfit.lamps import cluster_start, rectangle
 
     q = np.array([_square(0.05, 0.05, 2.0), _square(0.15, 0.05, 2.0), _square(0.15, 0.15, 1.75)])
-    c, u, v = _cluster_start(q, np.array([1.0, 3.0, 0.0]), at=2)
+    c, u, v = cluster_start(q, np.array([1.0, 3.0, 0.0]), at=2)
     np.testing.assert_allclose(c, [0.125, 0.05, 1.75], atol=1e-12)
-    c0, _, _ = _cluster_start(q, np.zeros(3), at=0)                      # no power: the plain middle
+    c0, _, _ = cluster_start(q, np.zeros(3), at=0)                      # no power: the plain middle
     np.testing.assert_allclose(c0, [0.35 / 3, 0.25 / 3, 2.0], atol=1e-12)
-    r = _rectangle(c, u, v, 0.05, 0.05)
+    r = rectangle(c, u, v, 0.05, 0.05)
     np.testing.assert_allclose(r.min(axis=0), [0.075, 0.0, 1.75], atol=1e-12)
     np.testing.assert_allclose(r.max(axis=0), [0.175, 0.1, 1.75], atol=1e-12)
     turn = np.cross(r[1] - r[0], r[3] - r[0])
@@ -1230,7 +1234,7 @@ def test_a_cluster_starts_where_its_light_is():
 def test_coordinate_search_walks_to_the_minimum_and_keeps_to_bounds():
     """A bowl's minimum inside the bounds is found to the last step's size; one outside them stops at the
     bound; a forbidden region is never evaluated; the budget is kept; a flat function stops at once."""
-    from pipeline.trace.lightfit import _coordinate_search
+    from pipeline.trace.lightfit.lamps import coordinate_search
 
     seen = []
 
@@ -1242,18 +1246,18 @@ def test_coordinate_search_walks_to_the_minimum_and_keeps_to_bounds():
 
     lo, hi = np.array([-1.0, -1.0]), np.array([1.0, 1.0])
     steps = np.array([0.2, 0.2])
-    x, fx, n = _coordinate_search(bowl(np.array([0.33, -0.52])), np.zeros(2), steps, lo, hi, lambda x: True, 200)
+    x, fx, n = coordinate_search(bowl(np.array([0.33, -0.52])), np.zeros(2), steps, lo, hi, lambda x: True, 200)
     np.testing.assert_allclose(x, [0.33, -0.52], atol=0.2 / 2 ** 3 / 2 + 1e-9)
     assert n <= 200
-    x, _, _ = _coordinate_search(bowl(np.array([3.0, 0.0])), np.zeros(2), steps, lo, hi, lambda x: True, 200)
+    x, _, _ = coordinate_search(bowl(np.array([3.0, 0.0])), np.zeros(2), steps, lo, hi, lambda x: True, 200)
     assert x[0] == 1.0
     seen.clear()
-    x, _, _ = _coordinate_search(bowl(np.array([0.6, 0.0])), np.zeros(2), steps, lo, hi, lambda x: x[0] <= 0.41, 200)
+    x, _, _ = coordinate_search(bowl(np.array([0.6, 0.0])), np.zeros(2), steps, lo, hi, lambda x: x[0] <= 0.41, 200)
     assert all(s[0] <= 0.41 for s in seen) and x[0] == pytest.approx(0.4)
     seen.clear()
-    _, _, n = _coordinate_search(bowl(np.array([0.9, 0.9])), np.zeros(2), steps / 100, lo, hi, lambda x: True, 7)
+    _, _, n = coordinate_search(bowl(np.array([0.9, 0.9])), np.zeros(2), steps / 100, lo, hi, lambda x: True, 7)
     assert n == 7 == len(seen)
-    _, _, n = _coordinate_search(lambda x: 1.0, np.zeros(2), steps, lo, hi, lambda x: True, 200)
+    _, _, n = coordinate_search(lambda x: 1.0, np.zeros(2), steps, lo, hi, lambda x: True, 200)
     assert n == 5                                  # x0, then each step of one sweep: nothing changed
 
 
@@ -1325,7 +1329,7 @@ def test_a_clipped_lights_colour_is_read_at_its_edges():
     where it is many times brighter (here 40x; green / red 0.7, blue / red 0.4 over a wall of another colour with
     a gradient), which the clipped pixels no longer show; the edge pixels' own colour is far less saturated. No
     clipped pixel, every pixel clipped, a lamp a few pixels across: no colour."""
-    from pipeline.trace.lightfit import _clipped_edge_excess, _edge_colour
+    from pipeline.trace.lightfit.observe import clipped_edge_excess, edge_colour
 
     ss, h, w = 8, 240, 320
     yy, xx = (np.mgrid[0:h * ss, 0:w * ss] + 0.5) / ss
@@ -1340,15 +1344,15 @@ def test_a_clipped_lights_colour_is_read_at_its_edges():
         return encode_u8(lin), lin
 
     img, lin = photo(100.0, 60.0)
-    col = _edge_colour(_clipped_edge_excess(img, 250))
+    col = edge_colour(clipped_edge_excess(img, 250))
     assert col is not None
     np.testing.assert_allclose(col, [1.0, 0.7, 0.4], rtol=0.04)
     own = lin[(lin.max(axis=2) > wall.max(axis=2) * 1.5) & (img.max(axis=2) < 250)]   # the edge, surface left in
     assert len(own) >= 30 and np.median(own[:, 2] / own[:, 0]) > 0.5
-    assert len(_clipped_edge_excess(np.full((h, w, 3), 120, np.uint8), 250)) == 0
-    assert len(_clipped_edge_excess(np.full((h, w, 3), 255, np.uint8), 250)) == 0
-    small = _clipped_edge_excess(photo(3.0, 2.0)[0], 250)           # a small lamp: too few edge pixels to say
-    assert 0 < len(small) < 30 and _edge_colour(small) is None
+    assert len(clipped_edge_excess(np.full((h, w, 3), 120, np.uint8), 250)) == 0
+    assert len(clipped_edge_excess(np.full((h, w, 3), 255, np.uint8), 250)) == 0
+    small = clipped_edge_excess(photo(3.0, 2.0)[0], 250)           # a small lamp: too few edge pixels to say
+    assert 0 < len(small) < 30 and edge_colour(small) is None
 
 
 def test_a_lamp_in_view_takes_its_edges_colour(caplog):
@@ -1397,25 +1401,25 @@ def test_edge_colour_keeps_a_lights_luminance_and_sensor_white():
     """A clipped light fitted above its bound keeps its luminance in the edges' colour; one whose colour would put
     a channel under sensor white is raised until it does not, by how much said; a light held at its bound (no
     luminance of its own) takes the colour at sensor white and is not counted. Over 1.5x, one line says so."""
-    from pipeline.trace.lightfit import _edge_coloured, _say_edge_raise
+    from pipeline.trace.lightfit.colour import edge_coloured, say_edge_raise
 
     colour = np.array([1.0, 0.7, 0.4])
     lum = np.array([0.2126, 0.7152, 0.0722])
     lb = np.ones((3, 3))
     e = np.array([[10.0, 8.0, 6.0], [2.0, 1.5, 1.0], [1.0, 1.0, 1.0]])
-    out, raised = _edge_coloured(e, lb, colour)
+    out, raised = edge_coloured(e, lb, colour)
     np.testing.assert_allclose(out / out[:, :1], np.tile(colour, (3, 1)), rtol=1e-12)
     assert abs(out[0] @ lum - e[0] @ lum) < 1e-9                      # kept
     np.testing.assert_allclose(out[1:, 2], 1.0)                       # blue at sensor white: raised
     assert abs(raised - 2.5 / ((e[1] @ lum) / (colour @ lum))) < 1e-9 and 1.1 < raised < 1.3
-    assert _edge_coloured(e[2:], lb[2:], colour)[1] == 1.0            # held at its bound: not counted
+    assert edge_coloured(e[2:], lb[2:], colour)[1] == 1.0            # held at its bound: not counted
     caplog_lines = []
     handler = logging.Handler()
     handler.emit = lambda r: caplog_lines.append(r.getMessage())
     logging.getLogger("pipeline.trace.lightfit").addHandler(handler)
     try:
-        _say_edge_raise("room", colour, 1.4)
-        _say_edge_raise("room", colour, 2.0)
+        say_edge_raise("room", colour, 1.4)
+        say_edge_raise("room", colour, 2.0)
     finally:
         logging.getLogger("pipeline.trace.lightfit").removeHandler(handler)
     assert len(caplog_lines) == 1 and "2.0x" in caplog_lines[0] and "fit_edge_colour = false" in caplog_lines[0]

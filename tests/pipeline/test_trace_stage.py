@@ -381,7 +381,7 @@ def test_photo_lighting_lights_what_the_photos_see_clipped_and_is_off_with_zero_
         out[name + "_pbr"] = float(a["pbr"].mean())
         STAGE.run_item(ctx, STAGE.plan(ctx)[0])
         assert FrameKey("room", 0, 0).path(run, TRACE_TPATH).read_bytes() == out[name]   # deterministic
-    # no photo, or photo lighting off: the mesh colours alone, as before
+    # no photo, or photo lighting off: the mesh colours alone
     assert out["off"] == out["none"]
     # a photo the mesh agrees with (no clipping, the closed room leaves no hole) changes nothing either
     assert out["grey"] == out["none"]
@@ -407,19 +407,27 @@ def test_stage_measures_the_photos_exposure_against_the_mesh_colours(tmp_path, l
 
 def test_the_fits_cache_key_covers_every_module_the_fit_computes_with():
     """A resumed run reads back lights.npz only while the code that made it is unchanged: the key hashes
-    lightfit.py and every pipeline module it imports (reading and writing files aside)."""
+    every module of the lightfit package and every pipeline module they import (reading and writing files
+    aside)."""
     import ast
 
     import pipeline
     from pipeline.trace import stage
 
     root = Path(pipeline.__file__).parent
-    tree = ast.parse((root / "trace" / "lightfit.py").read_text())
-    used = {n.module for n in ast.walk(tree)
+    package = sorted((root / "trace" / "lightfit").glob("*.py"))
+    own = {p.relative_to(root).as_posix() for p in package}
+    used = {n.module for p in package for n in ast.walk(ast.parse(p.read_text()))
             if isinstance(n, ast.ImportFrom) and (n.module or "").startswith("pipeline.")}
-    files = {m.removeprefix("pipeline.").replace(".", "/") + ".py" for m in used} - {"io.py", "errors.py"}
+
+    def source(module: str) -> str:
+        rel = module.removeprefix("pipeline.").replace(".", "/")
+        return f"{rel}/__init__.py" if (root / rel).is_dir() else f"{rel}.py"
+
+    files = {source(m) for m in used} - {"io.py", "errors.py"}
     assert files and files <= set(stage.FIT_SOURCES)
-    assert "trace/lightfit.py" in stage.FIT_SOURCES and all((root / f).is_file() for f in stage.FIT_SOURCES)
+    assert "trace/lightfit/fit.py" in own and own <= set(stage.FIT_SOURCES)
+    assert all((root / f).is_file() for f in stage.FIT_SOURCES)
 
 
 def test_fitted_lights_are_kept_per_scan_and_fitted_again_when_the_fit_changes(tmp_path, monkeypatch):
@@ -442,6 +450,6 @@ def test_fitted_lights_are_kept_per_scan_and_fitted_again_when_the_fit_changes(t
 
     key, made = fit()
     assert fit() == (key, made)                    # read back, not fitted again
-    monkeypatch.setattr(stage, "fit_code", lambda: "another version of lightfit.py")
+    monkeypatch.setattr(stage, "fit_code", lambda: "another version of the light fit")
     key2, made2 = fit()
     assert key2 != key and made2 != made           # an earlier version's lights are not read back
