@@ -1,6 +1,6 @@
 """Light recovery by inverse rendering (the pipeline/trace/lightfit package): hard and bad input, and the closing box.
 
-Accuracy against an independent renderer is in tests/pipeline/test_lighting_suite.py (Mitsuba 3).
+Accuracy against an independent renderer is in tests/bench/test_lighting_suite.py (Mitsuba 3).
 """
 
 from __future__ import annotations
