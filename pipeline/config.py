@@ -250,17 +250,14 @@ class TraceConfig:
     fit_points: int = option(16000, "fit lighting: room points the photos saw that the light fit explains at most "
                              "(drawn at random; where the light comes from is found on every other one, the choice among "
                              "the third stage's lamps on every fourth, its power "
-                             "and the albedo level on all: with 2000 a suite room's objects PSNR moved by up to 7 dB "
-                             "from one run seed to another, with 4000 by up to 1.5 dB, with 8000 by up to 1.3 dB; "
-                             "16000 lit the tuned rooms' objects 0.5 dB better than 8000 over three seeds, the fit "
-                             "taking about twice as long)",
+                             "and the albedo level on all; fewer points make the fit faster and its answer depend "
+                             "more on the run seed)",
                              min=50)
     fit_cell: float = option(0.4, "fit lighting: cell size of the box that closes the room's holes (each cell "
                              "an unknown emitter), metres", min=0.05)
     fit_sparsity: float = option(0.4, "fit lighting: weight of the few-bright-emitters prior (L1 on emission, each "
-                                 "cell weighed by the light it sends to the photographed points; tuned on half of "
-                                 "the Mitsuba light suite's rooms: 0.2 let spurious lamps near the cameras take a "
-                                 "quarter of the window room's light at half the run seeds)", min=0.0)
+                                 "cell weighed by the light it sends to the photographed points; lower values let "
+                                 "spurious lamps appear near the cameras)", min=0.0)
     fit_level_tolerance: float = option(0.05, "fit lighting, first stage (where the light is): each channel's room "
                                         "albedo is the highest level whose objective is within this share of the "
                                         "best (the least light that explains the photos); the second stage takes "
