@@ -560,7 +560,7 @@ def test_known_lights_light_the_unseen_cells():
 def test_a_clipped_lamp_handed_in_is_not_a_second_emitter():
     """A lamp the photos see clipped (its mesh colours at sensor white) and handed in as a known light, 2 cm off
     its wall as the light suite's oracle hands them in: the mesh's clipped patch is that lamp, not a clipped
-    region emitting at least sensor white beside it (it lit the suite's lamp-in-view room 1.4x the panel), and
+    region emitting at least sensor white beside it (that would light the room twice), and
     it sends nothing in the gathers. A known light elsewhere leaves the patch a clipped region."""
     v, f, colors = open_room()
     patch = (np.abs(v[:, 0] - 2.0) < 1e-6) & (np.abs(v[:, 1]) < 0.7) & (v[:, 2] > 0.8) & (v[:, 2] < 1.7)
@@ -636,8 +636,7 @@ def test_lights_complete_adds_no_light_and_their_power_sets_the_albedo(caplog):
 
 def test_a_clipped_region_lights_the_unseen_cells_as_its_area_says():
     """What a clipped region sends an unseen cell is sampled over the region's area (hemisphere rays from the cells
-    seldom met a small bright region: the suite's lamp-in-view ceiling got 0.70-1.33x its light from the wall
-    panel over four run seeds). A 0.5 m square region 1 m above a cell facing it: pi x Howell's configuration
+    seldom meet a small bright region, so its light would swing with the run seed). A 0.5 m square region 1 m above a cell facing it: pi x Howell's configuration
     factor, to 3 %; nothing from its other side unless it emits both ways; one sample per pair is as unbiased."""
     from pipeline.trace.intersect import EmbreeIntersector
     from pipeline.trace.lightfit.transport import region_columns
@@ -868,8 +867,7 @@ def test_emission_solve_shares_products_only_where_channels_agree():
 @pytest.mark.parametrize("best", [0.07, 0.11, 0.42])
 def test_albedo_level_search_reaches_dark_rooms(best):
     """A channel whose photos are best explained at a room albedo level of ``best`` gets that level from the
-    search grid and its parabola, not the grid's end: the light suite's red- and green-walled room has walls
-    of 0.06-0.09 in blue, and 7-Scenes' kitchen sat at the old grid's floor of 0.15 in every channel. A
+    search grid and its parabola, not the grid's end: deep red or green walls are 0.06-0.09 in blue. A
     residual that falls all the way to the grid's darkest level stops there."""
     from pipeline.trace.lightfit.albedo import ALBEDO_LEVELS, ALBEDO_RANGE, curve_minimum
 
@@ -993,8 +991,7 @@ def test_the_unseen_side_of_a_sheet_sends_its_own_albedo_of_the_light_below():
 def test_relative_weights_do_not_follow_the_texture():
     """A textured surface (albedo 0.2-1.0 at random per point) under a smooth light: one gain fitted by the
     weighted relative least squares against the photo recovers the true gain (1) within 3 %, where weights
-    of one over each point's own value are biased low by over 10 % (the suite's fit: albedo x light
-    0.69-0.86x the photos). Neighbours are on the same surface: a crease with a 10x brighter wall does not
+    of one over each point's own value are biased low by over 10 %. Neighbours are on the same surface: a crease with a 10x brighter wall does not
     change the floor's weights."""
     from pipeline.trace.lightfit.albedo import relative_weights
 
