@@ -37,16 +37,13 @@ Ground truth (issue 10): the path-traced photo mode of the scan generator.
   outside the objects, in place of the trace stage's pass: what the blend makes of a perfect pass).
   Chain: published -> + soft edges -> + shadows -> + blur -> + noise (= full); leave-one-out rows
   drop one part of full (camera matching = blur and noise). Lighting rows: the trace stage without
-  its photo-based lighting (mesh colours only, the earlier default) and with other room-albedo priors.
+  its photo-based lighting (mesh colours only) and with other room-albedo priors.
 - **Metrics** over the objects, a band of ``BAND`` px around them and every pixel the objects darken by
   more than 2 % in the truth: PSNR (dB, 8-bit) and SSIM (skimage, 7x7, mean of the SSIM map over the
   region); PSNR separately over edge pixels (0 < true coverage < 1), band/shadow pixels and object
   interiors; noise level on object interiors. Speed: seconds per frame of the trace passes each blend
   needs plus the blend. The truth's own floor: PSNR between two truth renders with different path seeds
   (view 0).
-
-The previous stand-in (a box room lit as an emitter of its colours, the objects' tracer as truth, a
-brute-force shadow ratio; commit 123b2a1) is kept in the JSON under ``figures.stand_in_previous``.
 
 What it does not show: real scan errors beyond the generator's (its scanner mesh has noise and holes;
 poses are exact), motion blur (the camera model here is a Gaussian PSF; the scan's motion-blurred and
@@ -465,9 +462,6 @@ def run(views: int, quick: bool) -> BenchResult:
         "table_by_spp": {f"{name} @ {spp} spp": {k: round(v, 3) for k, v in m.items()}
                          for (name, spp), m in mean.items() if spp > 0},
     })
-    prev = _previous_stand_in()
-    if prev is not None:
-        res.figures["stand_in_previous"] = prev
     res.notes += [
         f"Truth: the scan generator's path-traced photo mode (render_traced_view on the TRUE room: textures, "
         f"one-sided area lights, GI) with the objects inserted, {spp_truth} spp, the same seed as the photo "
@@ -489,8 +483,8 @@ def run(views: int, quick: bool) -> BenchResult:
         "Trace lighting (trace.photo_frames, trace.room_albedo): clipped photo pixels mark lights on the room mesh, "
         "photo rays leaving the mesh fill an environment map for escaping rays, and directions no photo saw get the "
         "radiance that balances the energy of the room points the photos saw (grey-world room albedo prior 0.5, not "
-        "fitted to this benchmark; 0.3 and 0.7 shown as 'lighting: albedo' rows). 'lighting: mesh colours only' is "
-        "the earlier default (mesh colours + a constant mean-radiance environment).",
+        "fitted to this benchmark; 0.3 and 0.7 shown as 'lighting: albedo' rows). 'lighting: mesh colours only': "
+        "mesh colours + a constant mean-radiance environment.",
         "Camera matching = the measured exposure (trace stage: photo / room-mesh colour luminance, per frame) + the "
         "measured blur + the measured noise; 'full - camera matching' drops all three.",
         "Exposure calibration (a generator artefact, not a pipeline step): the generator's scanner mesh carries its "
@@ -507,35 +501,9 @@ def run(views: int, quick: bool) -> BenchResult:
         "seconds = trace passes the blend needs (published: PBR+AO render only; shadows: + shadow pass) + blend. "
         "The tracer's spp is adaptive (trace.noise_target), so its time depends on the lighting: the 'lighting' rows "
         "were traced with other lighting and took 1.3-2.7x longer (noisier light, more samples before the stop).",
-        "figures.stand_in_previous: the results of the earlier stand-in benchmark (box room, object tracer "
-        "as truth, brute-force shadow ratio), kept for comparison only; not the issue's ground truth.",
     ]
     _sheet_png(sheet, len(vlist))
     return res
-
-
-def _previous_stand_in() -> dict | None:
-    """The stand-in results of the earlier benchmark (from the committed composite.json), or None."""
-    path = RESULTS / "composite.json"
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    fig = doc.get("figures", {})
-    if "truth_source" in fig:   # already a traced-truth result: carry its stand-in block over
-        prev = dict(fig.get("stand_in_previous") or {})
-        if "camera_model" not in fig and "previous_traced_run" not in prev:   # the run before photo lighting
-            prev["previous_traced_run"] = {
-                "label": "traced truth without camera blur; trace lighting from mesh colours only (commit before "
-                         "photo-based lighting)",
-                **{k: fig.get(k) for k in ("psnr_published_db", "psnr_full_db", "ssim_published", "ssim_full",
-                                           "psnr_gain_db", "object_brightness_full_over_truth",
-                                           "seconds_published", "seconds_full")}}
-        return prev or None
-    keep = {k: v for k, v in fig.items() if k != "table_by_spp"}
-    return {"label": "STAND-IN truth (box room lit as an emitter of its colours; objects by pipeline.trace at "
-                     "256 spp; brute-force one-bounce shadow ratio); superseded by the traced truth above",
-            "accuracy_label": doc.get("accuracy_label"), "figures": keep}
 
 
 def _ablation_png(table: dict[str, dict], truth_noise: float) -> None:
