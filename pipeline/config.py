@@ -436,12 +436,23 @@ def _resolve_path(key: str, value: str, kind: str, base: Path) -> str:
     return str(p)
 
 
+# Keys that configs written for earlier versions may still set: what became of each, said with the fix.
+REMOVED_KEYS = {
+    "trace.fit_albedo_shrink": "it had no effect at its default 0",
+    "trace.fit_light_colour": "the fitted lights always share one colour per kind of emitter, as 'shared' did",
+}
+
+
 def _build_table(name: str, cls: type, raw: Any, base: Path) -> Any:
     if not isinstance(raw, dict):
         raise ConfigError(f"[{name}] must be a table, got {raw!r}", key=name)
     hints = typing.get_type_hints(cls)
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(raw) - set(fields))
+    removed = [k for k in unknown if f"{name}.{k}" in REMOVED_KEYS]
+    if removed:
+        key = f"{name}.{removed[0]}"
+        raise ConfigError(f"{key} is no longer an option ({REMOVED_KEYS[key]}); delete it", key=key)
     if unknown:
         raise ConfigError(f"unknown key {name}.{unknown[0]}; valid keys in [{name}]: {', '.join(fields)}",
                           key=f"{name}.{unknown[0]}")

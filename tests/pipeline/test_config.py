@@ -92,6 +92,21 @@ def test_errors_say_whether_the_file_or_set_gave_the_bad_key(tmp_path):
     assert str(e.value).startswith(f"{p}: trace.spp = -3")
 
 
+def test_a_removed_key_says_what_became_of_it_and_to_delete_it(tmp_path):
+    p = tmp_path / "old.toml"
+    p.write_text('[trace]\nfit_albedo_shrink = 0.0\n')
+    with pytest.raises(ConfigError) as e:
+        load_config(p)
+    assert str(e.value).startswith(f"{p}: trace.fit_albedo_shrink is no longer an option ("), str(e.value)
+    assert str(e.value).endswith("delete it"), str(e.value)
+    p.write_text('[trace]\nspp = 8\n')
+    with pytest.raises(ConfigError, match="trace.fit_light_colour is no longer an option"):
+        load_config(p, ["trace.fit_light_colour=shared"])
+    from pipeline.config import REMOVED_KEYS, TraceConfig
+
+    assert not {k.split(".")[1] for k in REMOVED_KEYS} & {f.name for f in dataclasses.fields(TraceConfig)}
+
+
 def test_reference_lists_every_key():
     ref = reference_markdown()
     for f in dataclasses.fields(Config):
