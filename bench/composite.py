@@ -631,10 +631,8 @@ def real_sheet(frames: int = 4, scale: float = 0.5) -> None:
     from pipeline.scanformats.mesh import read_room_ply
     from pipeline.seeding import item_rng
     from pipeline.camera import Camera
-    from pipeline.trace.pbr import render, trace_mask
     from pipeline.trace.scene import build_scene, instance_from_model
-    from pipeline.trace.shadow import shadow_ratio
-    from pipeline.trace.stage import settings_from_config
+    from pipeline.trace.stage import object_passes, shadow_pass
 
     scan_dir = SHARED_DATA / "scans" / "7scenes-redkitchen"
     if not scan_dir.is_dir():
@@ -682,15 +680,8 @@ def real_sheet(frames: int = 4, scale: float = 0.5) -> None:
         hh = scene.intersector.intersect(o, d)
         labels = np.where(hh.hit, scene.tri_inst[np.maximum(hh.prim, 0)], 0).astype(np.uint16).reshape(h, w)
         t0 = time.perf_counter()
-        fb = render(scene, cam, trace_mask(labels, tcfg.edge_band), settings_from_config(tcfg), rng)
-        pbr, ao = fb.pbr, fb.ao
-        if tcfg.denoise != "off":
-            from pipeline.trace.denoise import denoise, denoise_ao
-
-            pbr = denoise(fb.pbr, fb.albedo, fb.normal, fb.coverage > 0, method=tcfg.denoise)
-            ao = denoise_ao(fb.ao, fb.normal, fb.coverage > 0, method=tcfg.denoise)
-        sr = shadow_ratio(scene, cam, labels, rng, samples=tcfg.shadow_samples, min_effect=tcfg.shadow_min_effect,
-                          stride=tcfg.shadow_stride, smooth=tcfg.shadow_smooth)
+        _, fb, pbr, ao = object_passes(scene, cam, labels, tcfg, rng, ao=True)
+        sr = shadow_pass(scene, cam, labels, tcfg, rng)
         log.info("frame %d: %d objects, traced in %.1f s", fi, len(insts), time.perf_counter() - t0)
         photo = cv2.resize(read_color(scan, fi), (w, h), interpolation=cv2.INTER_AREA)
         pub = composite_published(photo, pbr, ao, labels > 0, coverage=fb.coverage)
