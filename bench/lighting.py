@@ -15,7 +15,7 @@ rendered by Mitsuba), the real CLI runs every stage up to raster once (``scansyn
 objects at their true poses, every frame), then trace and composite once per variant on a copy:
 
 - ``published``: the published four point lights and the published blend (PBR x AO in the mask);
-- ``scan``: the lighting of the previous release (the room mesh's colours, clipped-photo lights and the
+- ``scan``: the room mesh's own light (its colours, clipped-photo lights and the
   grey-world energy balance for unseen directions), full blend;
 - ``fit``: the emitters recovered by inverse rendering (:mod:`pipeline.trace.lightfit`), full blend;
 - ``oracle``: the true emitters handed to our tracer (``trace.lights_file`` from the suite's
@@ -290,8 +290,8 @@ def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int 
         st = {x["stage"]: x for x in json.loads((run / "run.json").read_text())["stages"]}
         fit_s = float(fit_s or 0.0)
         v["fit_s"] = fit_s
-        # CPU less the fit's CPU: the trace and composite stages per frame (their wall seconds less the fit's CPU
-        # seconds, as this was before, went negative once the fit ran on two threads)
+        # CPU less the fit's CPU: the trace and composite stages per frame (wall seconds less the fit's CPU seconds
+        # would go negative, the fit running on two threads)
         v["trace_composite_cpu_s_per_frame"] = (cpu - fit_s) / max(len(ok), 1)
         v["trace_wall_s"] = st["trace"]["seconds"]
         v["composite_s_per_frame"] = st["composite"]["seconds"] / max(len(ok), 1)

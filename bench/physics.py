@@ -335,7 +335,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--objects", type=int, default=10)
     ap.add_argument("--sweep-drops", type=int, default=10, help="drops per extra timestep of the sweep")
     ap.add_argument("--thin-drops", type=int, default=100,
-                    help="drops as before issue 16 (objects stay on the 1 cm shell, rest_thickness = "
+                    help="baseline drops (objects stay on the 1 cm shell, rest_thickness = "
                          "room_thickness): the same-run baseline")
     ap.add_argument("--cache", default=str(Path(tempfile.gettempdir()) / "scansynth_bench_physics"))
     ap.add_argument("--chart-only", action="store_true",
@@ -372,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
     def keep(r: dict) -> dict:
         return {k: v for k, v in r.items() if k not in ("seconds_cpu", "penetrations_m")}
 
-    # the same-run baseline: objects left on the 1 cm shell (as before issue 16)
+    # the same-run baseline: objects left on the 1 cm shell
     b = room_drops(room, up, bodies, args.thin_drops, args.objects, 0.02, info=info,
                    rest_thickness=DropSettings().room_thickness)
     res.figures["redkitchen_lmo_on_shell_baseline"] = keep(b)
@@ -435,7 +435,7 @@ def main(argv: list[str] | None = None) -> int:
         "beside them (this 2-core machine was shared with other benchmarks: wall >= CPU). The room's grid, "
         "mesh BVH and surface facts (RoomInfo) are built once per room, as the simulate stage does per "
         "worker process. Baseline (same run, figure key redkitchen_lmo_on_shell_baseline): bodies left "
-        "resting on the 1 cm shell (rest_thickness = room_thickness, the behaviour before issue 16). "
+        "resting on the 1 cm shell (rest_thickness = room_thickness). "
         "surface_gap: per accepted object held up by the scan (not by another object), the smallest signed "
         "distance of the object's own hull vertices to the scan mesh (not to a shell).")
     res.notes.append(
