@@ -144,8 +144,7 @@ def solve_contacts(model: Model, state: State, free: State, contacts: Contacts,
     pre = np.repeat(1.0 / (Ann + Rrow[:, 0]), 3)
     step = _step_size(system, pre)
     p = np.zeros((K, 3)) if warm is None else project_cone(warm[ci], mu)
-    p = p.reshape(-1)
-    p, exact = _active_set_solve(p.reshape(K, 3), system.hmul, system.c, mu, Jf, Wf, system.Rv, system.H, soft)
+    p, exact = _active_set_solve(p, system.hmul, system.c, mu, Jf, Wf, system.Rv, system.H, soft)
     p, it, res = _projected_gradient(system, p.reshape(-1), step, exact, model.body_bound[bodies], opt)
     dv = (Wf.T @ p).reshape(nd, 6)
     vel[bodies] += dv[:, :3]
