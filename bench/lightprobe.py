@@ -99,14 +99,14 @@ def gather(rl, points: np.ndarray, normals: np.ndarray, rays: int, rng: np.rando
     (the scan's surfaces, the side the photos saw), ``box`` (the closing box's cells), ``lights`` (emitters:
     not counted by the meter), ``unseen_side`` (a mesh triangle's other side: replaced in the fit); each (n, 3),
     and ``box_share`` (n,) the share of rays meeting the box. ``scene``: :func:`room_scene` of ``rl`` if built."""
-    from pipeline.trace.lightfit.transport import at, gather
+    from pipeline.trace.lightfit import transport
 
     isect, F, tn = scene or room_scene(rl)
     n = len(points)
-    _, hits, d = gather(isect, np.asarray(points, np.float64), np.asarray(normals, np.float64), rays, rng, OFFSET_M)
+    _, hits, d = transport.gather(isect, np.asarray(points, np.float64), np.asarray(normals, np.float64), rays, rng, OFFSET_M)
     hit = np.flatnonzero(hits.hit)
     rad = np.zeros((hits.hit.size, 3))
-    rad[hit] = at(np.asarray(rl.radiance, np.float64), F, hits.prim[hit], hits.u[hit], hits.v[hit])
+    rad[hit] = transport.at(np.asarray(rl.radiance, np.float64), F, hits.prim[hit], hits.u[hit], hits.v[hit])
     prim = np.where(hits.hit, hits.prim, -1)
     safe = np.maximum(prim, 0)
     mesh = (prim >= 0) & (prim < rl.num_mesh_tris)

@@ -253,9 +253,7 @@ def fit_settings(cfg: TraceConfig, width: int):
 
 # the light fit's source, the modules it computes with and this one (which picks its photos and settings), relative
 # to pipeline/: part of the fitted lights' cache key
-FIT_PACKAGE = ("__init__", "albedo", "closure", "colour", "fit", "lamps", "nnls", "observe", "result", "settings",
-               "solve", "stages", "transport", "unknowns")
-FIT_SOURCES = tuple(f"trace/lightfit/{m}.py" for m in FIT_PACKAGE) + (
+FIT_SOURCES = tuple(sorted(f"trace/lightfit/{p.name}" for p in (Path(__file__).parent / "lightfit").glob("*.py"))) + (
     "trace/photolights.py", "trace/intersect.py", "trace/sampling.py", "trace/scene.py", "trace/stage.py", "color.py",
     "geometry.py", "camera.py", "seeding.py", "scanformats/common.py")
 

@@ -131,11 +131,19 @@ def _candidates(pb: Problem, sup: np.ndarray, rng: np.random.Generator, pool) ->
     quads, qn, parent, Ac, lam_c = quads[use], qn[use], parent[use], Ac[:, use], lam_c[use]
     if len(quads) == 0:
         return None
+    return quads, qn, parent, Ac, lam_c, cell_columns(pb, quads, qn, rng, pool), crows
+
+
+def cell_columns(pb: Problem, quads: np.ndarray, normals: np.ndarray, rng: np.random.Generator,
+                 pool=None) -> np.ndarray:
+    """(K, J) float64: each lamp's (corners ``quads (J, 4, 3)``, ``normals (J, 3)``) light per unit radiance at
+    the unseen box cells (the first ``nbu`` unknowns; the clipped regions' rows stay 0)."""
+    room, unk = pb.room, pb.unk
     bu = unk.box_unknown
-    Gc = np.zeros((unk.K, len(quads)))
-    Gc[:unk.nbu] = quad_columns(room.isect, room.box_centre[bu], room.box_normal[bu], quads, qn, CELL_SAMPLES, rng,
-                                room.eps, pool)
-    return quads, qn, parent, Ac, lam_c, Gc, crows
+    g = np.zeros((unk.K, len(quads)))
+    g[:unk.nbu] = quad_columns(room.isect, room.box_centre[bu], room.box_normal[bu], quads, normals, CELL_SAMPLES,
+                               rng, room.eps, pool)
+    return g
 
 
 def _choose(lp: LampProblem, level: np.ndarray, quads: np.ndarray, Ac: np.ndarray, lam_c: np.ndarray,
@@ -274,14 +282,10 @@ def _polish_start(lq: np.ndarray, ln: np.ndarray, Gk: np.ndarray, groups: list, 
 def lamp_columns(pb: Problem, q: np.ndarray, nrm: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """One lamp's (corners ``q``, normal ``nrm``) light at stage 1's points and at the unseen cells, with the same
     samples every time (``seed``: the search compares places, not noise)."""
-    room, unk, srows = pb.room, pb.unk, pb.tr.srows
+    room, srows = pb.room, pb.tr.srows
     a = quad_columns(room.isect, pb.pts.P[srows], pb.pts.N[srows], q[None], nrm[None], pb.st.emitter_samples,
                      np.random.default_rng(seed), room.eps)
-    g = np.zeros(unk.K)
-    bu = unk.box_unknown
-    g[:unk.nbu] = quad_columns(room.isect, room.box_centre[bu], room.box_normal[bu], q[None], nrm[None], CELL_SAMPLES,
-                               np.random.default_rng(seed + 1), room.eps)[:, 0]
-    return a[:, 0], g
+    return a[:, 0], cell_columns(pb, q[None], nrm[None], np.random.default_rng(seed + 1))[:, 0]
 
 
 def _polish_one(pb: Problem, nq: np.ndarray, nn: np.ndarray, j: int, c: np.ndarray, u: np.ndarray, v: np.ndarray,

@@ -29,7 +29,6 @@ class Unknowns:
     cells first, then the clipped mesh regions)."""
 
     mesh_rad: np.ndarray       # (nv, 3) float64 linear radiance per mesh vertex (0 on the known lights' surface)
-    box_rad: np.ndarray        # (C, 3) float64 radiance of the box cells the photos saw, and the low cells' fill
     low_rad: np.ndarray        # (3,) float64 mean radiance of the mesh's surfaces below furniture height
     box_unknown: np.ndarray    # (U,) int64 box cells of unknown radiance
     groups: list               # (t,) int64 mesh triangles of each clipped region
@@ -96,7 +95,7 @@ def find_unknowns(room: Room, obs: Observations, colors: np.ndarray | None, st: 
         if obs.box_clip[c] > 0:
             lb[k] = thr_lin
     lb[box_unknown.size:] = thr_lin
-    return Unknowns(mesh_rad=mesh_rad, box_rad=box_rad, low_rad=low_rad, box_unknown=box_unknown, groups=groups,
+    return Unknowns(mesh_rad=mesh_rad, low_rad=low_rad, box_unknown=box_unknown, groups=groups,
                     unknown_tri=unknown_tri,
                     vrad=np.concatenate([mesh_rad, np.repeat(box_rad, 4, axis=0),
                                          np.repeat(room.known_radiance, 4, axis=0)]),
