@@ -400,8 +400,10 @@ def write_seeds(path: Path, block: dict) -> None:
 
     The file holds the figures of the run that wrote it and nothing else: whatever it held before, figures of
     other code or of other renders of the suite included, is replaced, so every figure in it was measured
-    together on one code version and one render."""
-    path.write_text(json.dumps(block, indent=1))
+    together on one code version and one render. Written atomically; a failed room's NaN figures stay NaN."""
+    from pipeline.io import atomic_write_bytes
+
+    atomic_write_bytes(path, json.dumps(block, indent=1).encode("utf-8"))
 
 
 def chart(rooms: dict, summary: dict, variants, path: Path) -> None:
