@@ -193,6 +193,9 @@ class RasterConfig:
                                    "plus fusion_tol_rel x depth to occlude it, metres", min=0.0)
     fusion_tol_rel: float = option(0.01, "depth-proportional part of the fusion tolerance, metres per metre",
                                    min=0.0)
+    frames_per_drop: int = option(0, "a simulated drop is rastered on the kept frames predicted to see it "
+                                  "(pipeline/frame_views.py); at most this many, the best-seeing first; "
+                                  "0 = all of them", min=0)
 
 
 @dataclass(frozen=True)

@@ -47,3 +47,29 @@ def up_frame(up) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     e1 = np.cross(up, a)
     e1 /= np.linalg.norm(e1)
     return e1, np.cross(up, e1), up
+
+
+def hull_mesh(vertices: np.ndarray, *, min_vertices: int = 64) -> tuple[np.ndarray, np.ndarray | None]:
+    """Convex hull of a point set: ``(points (H, 3) float64, triangles (T, 3) int64 into points or None)``.
+
+    All the points and no triangles when there are ``min_vertices`` or fewer, or when the set is flat or
+    degenerate."""
+    v = np.asarray(vertices, dtype=np.float64)
+    if len(v) <= min_vertices:
+        return v, None
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        h = ConvexHull(v)
+    except (QhullError, ValueError):
+        return v, None
+    index = np.full(len(v), -1, np.int64)
+    index[h.vertices] = np.arange(len(h.vertices))
+    return v[h.vertices], index[h.simplices]
+
+
+def hull_points(vertices: np.ndarray, *, min_vertices: int = 64) -> np.ndarray:
+    """(H, 3) float64 convex-hull vertices of a point set (all of them when ``min_vertices`` or fewer, or
+    when the set is flat or degenerate): projecting these bounds the set's silhouette as tightly as
+    projecting every point, at a fraction of the cost."""
+    return hull_mesh(vertices, min_vertices=min_vertices)[0]

@@ -1,6 +1,9 @@
 """Raster passes and annotations: what the camera sees of the dropped objects, per frame.
 
-For each (scene, drop, frame) item:
+Items are (scene, drop, frame): a simulated drop gets the kept frames that :mod:`pipeline.frame_views`
+predicts to pass the three rejection checks below (at most ``raster.frames_per_drop``, the best-seeing
+first), so no work goes to frames that would be rejected; a poses file's drop gets the frames it lists,
+or every kept frame. For each item:
 
 1. Camera-from-model poses of the instances; each instance's projected window (from its vertices).
    **Early rejection** before any rendering: when even the sum of the windows' areas inside the image
@@ -437,7 +440,43 @@ def _placements(ctx: StageContext, scene: str, obj_ids: Sequence[int] | None = N
     return out
 
 
+class _FramePredictor:
+    """:func:`pipeline.frame_views.frame_view` of a scene's frames, each frame's sensor depth read once and
+    each object's hull computed once (shared by every drop of the scene)."""
+
+    def __init__(self, run_dir: Path, scan: Scan, cfg: RasterConfig):
+        from pipeline.frame_views import object_shape
+
+        self.scan, self.cfg = scan, cfg
+        self.shapes = {o.obj_id: object_shape(o) for o in load_objects(run_dir)}
+        self._sensor: dict[int, object] = {}
+
+    def views(self, placement: Placement, frames: Sequence[int]) -> list:
+        from pipeline.frame_views import frame_view, sensor_depth
+        from pipeline.render_gl import ZNEAR
+
+        def sensor(f: int):
+            if f not in self._sensor:
+                self._sensor[f] = sensor_depth(self.scan, f)
+            return self._sensor[f]
+
+        out = []
+        for f in frames:
+            K, w, h = scaled_intrinsics(self.scan.K[f], self.scan.width, self.scan.height, self.cfg.image_scale)
+            out.append(frame_view(frame=f, K=K, T_c2w=self.scan.T_c2w[f], width=w, height=h, placement=placement,
+                                  shapes=self.shapes, sensor=lambda f=f: sensor(f), znear=ZNEAR,
+                                  tol_abs=self.cfg.fusion_tol_abs, tol_rel=self.cfg.fusion_tol_rel,
+                                  min_area=self.cfg.min_visible_area))
+        return out
+
+
 def plan(ctx: StageContext) -> list[Item]:
+    """One item per (scene, drop, frame): a poses file's frames as given; a simulated drop's kept frames
+    that :mod:`pipeline.frame_views` predicts to pass the raster checks (``raster.frames_per_drop`` caps
+    them)."""
+    from pipeline.frame_views import seeing_frames
+
+    cfg = ctx.cfg.raster
     items = []
     for scene in list_scenes(ctx.run_dir):
         scan = load_scan(ctx.run_dir, scene)
@@ -447,8 +486,15 @@ def plan(ctx: StageContext) -> list[Item]:
                         scene)
             continue
         default_frames = frames_to_render(ctx.run_dir, scan)
+        predictor = None
         for p, frames in placements:
-            fr = list(frames) if frames is not None else default_frames
+            if frames is None and not cfg.poses:
+                predictor = predictor or _FramePredictor(ctx.run_dir, scan, cfg)
+                fr = seeing_frames(predictor.views(p, default_frames), cfg.min_visible_area, cfg.frames_per_drop)
+                log.info("raster: %s drop %d: %d of %d kept frames see it", scene, p.drop, len(fr),
+                         len(default_frames))
+            else:
+                fr = list(frames) if frames is not None else default_frames
             bad = [f for f in fr if f >= scan.num_frames]
             if bad:
                 raise InputError(f"{ctx.cfg.raster.poses}: scene {scene!r} drop {p.drop}: frames {bad[:5]} "

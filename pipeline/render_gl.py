@@ -35,9 +35,12 @@ from typing import Sequence
 import numpy as np
 
 from pipeline.camera import gl_camera_pose, gl_intrinsics
+from pipeline.geometry import hull_points
 from pipeline.gl import offscreen_renderer, pyrender_module
 
 log = logging.getLogger(__name__)
+
+ZNEAR = 0.01   # m, default near clip plane: geometry nearer than this is not drawn
 
 class _View:
     """One OffscreenRenderer (GL context) of a fixed viewport size, with its own uploaded meshes.
@@ -116,7 +119,7 @@ class MeshRasterizer:
     >>> depth = r.render_depth(K, T_c2w, 640, 480, [("cube", T_m2w)])  # doctest: +SKIP
     """
 
-    def __init__(self, *, znear: float = 0.01, zfar: float = 100.0, max_triangles: int = 8_000_000,
+    def __init__(self, *, znear: float = ZNEAR, zfar: float = 100.0, max_triangles: int = 8_000_000,
                  max_views: int = 3):
         self._pr = pyrender_module()
         self.znear, self.zfar = float(znear), float(zfar)
@@ -166,18 +169,9 @@ class MeshRasterizer:
     def hull_vertices(self, key: str) -> np.ndarray:
         """(H, 3) float64 convex-hull vertices of the mesh ``key`` (computed once): projecting these
         bounds the mesh's silhouette as tightly as projecting every vertex."""
-        v, f = self._meshes[key]
         hull = self._hulls.get(key)
         if hull is None:
-            hull = v
-            if len(v) > 64:
-                from scipy.spatial import ConvexHull, QhullError
-
-                try:
-                    hull = v[ConvexHull(v).vertices]
-                except (QhullError, ValueError):  # flat or degenerate: all vertices bound it
-                    hull = v
-            self._hulls[key] = hull
+            hull = self._hulls[key] = hull_points(self._meshes[key][0])
         return hull
 
     def _evict(self, keep: str) -> None:
