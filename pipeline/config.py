@@ -173,6 +173,8 @@ class SimulateConfig:
                                    min_exclusive=True)
     max_penetration: float = option(0.002, "reject drops whose final penetration is deeper, metres",
                                     min=0.0, min_exclusive=True)
+    retries: int = option(2, "a drop rejected as never-settled, left-room or penetration is simulated again "
+                          "with a new draw (objects, spawn poses) up to this many times", min=0)
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,8 @@
 Items: one per (scene, drop), key ``<scene>/drop<NNNN>``. Each writes
 ``RUN/simulate/<scene>/drop<NNNN>.json`` (a :class:`~pipeline.types.Placement` plus simulation facts);
 rejected drops are written too, with their verdict, and counted in ``RUN/simulate/summary.json``
-(downstream stages use accepted drops only).
+(downstream stages use accepted drops only). A drop rejected for a reason that depends on its draw is
+simulated again with a new draw (``simulate.retries``); its file lists the attempts.
 """
 
 from __future__ import annotations
@@ -113,6 +114,40 @@ def simulate(cfg: SimulateConfig, *, scene: str, drop: int, room, up: np.ndarray
     return pl, {"seconds": round(r.sim_time, 6), "steps": r.steps, **facts}
 
 
+# Verdicts that depend on the draw (which objects, where they spawn, how they fall), so that another draw
+# can be accepted. "rejected:spawn" is not among them: the spawn sampler already tried hundreds of poses
+# per body in the view-focused squares and the whole room; failing means the objects do not fit the room's
+# spawn box, which another draw does not change and the user must see.
+RETRIED_VERDICTS = ("rejected:never-settled", "rejected:left-room", "rejected:penetration")
+
+
+def simulate_with_retries(cfg: SimulateConfig, rng_of, **kwargs) -> tuple[Placement, dict]:
+    """:func:`simulate`, again with a fresh draw while the verdict is one of :data:`RETRIED_VERDICTS`, up
+    to ``cfg.retries`` more times.
+
+    Parameters
+    ----------
+    rng_of : callable
+        ``attempt -> numpy.random.Generator``: attempt 0 is the drop's own generator, each later attempt
+        gets its own (deterministic: the same seed gives the same attempts).
+    **kwargs
+        The other arguments of :func:`simulate`.
+
+    Returns
+    -------
+    placement, facts
+        The last attempt's; ``facts["attempt"]`` is its index and ``facts["attempts"]`` lists every
+        attempt's verdict and simulated seconds.
+    """
+    attempts = []
+    for k in range(cfg.retries + 1):
+        pl, facts = simulate(cfg, rng=rng_of(k), **kwargs)
+        attempts.append({"verdict": pl.verdict, "seconds": facts["seconds"]})
+        if pl.verdict not in RETRIED_VERDICTS:
+            break
+    return pl, {**facts, "attempt": len(attempts) - 1, "attempts": attempts}
+
+
 def plan(ctx: StageContext) -> list[Item]:
     return [Item(key=DROP_TPATH.format(scene=s, drop=d), data={"scene": s, "drop": d})
             for s in list_scenes(ctx.run_dir) for d in range(ctx.cfg.simulate.drops)]
@@ -152,10 +187,20 @@ def run_item(ctx: StageContext, item: Item) -> dict:
     proxies = {o.obj_id: load_object_proxy(ctx.run_dir, o.obj_id) for o in load_objects(ctx.run_dir)}
     if not proxies:
         raise InputError("the object library is empty; give objects.paths in the config")
-    pl, facts = simulate(ctx.cfg.simulate, scene=scene, drop=drop, room=room, up=scan.up_w,
-                         proxies=proxies, rng=ctx.rng(item), view=view, info=info)
+
+    def rng_of(attempt: int) -> np.random.Generator:
+        from pipeline.seeding import item_rng
+
+        return ctx.rng(item) if attempt == 0 else item_rng(ctx.cfg.run.seed, ctx.stage, item.key,
+                                                          f"attempt{attempt}")
+
+    pl, facts = simulate_with_retries(ctx.cfg.simulate, rng_of, scene=scene, drop=drop, room=room, up=scan.up_w,
+                                      proxies=proxies, view=view, info=info)
     save_placement(path(ctx.run_dir, PLACEMENT_TPATH, scene=scene, drop=drop), pl, extra=facts)
-    if pl.verdict != "accepted":
+    if facts["attempt"]:
+        log.info("%s: %s after %d attempts (%s)", item.key, pl.verdict, facts["attempt"] + 1,
+                 ", ".join(a["verdict"] for a in facts["attempts"][:-1]))
+    elif pl.verdict != "accepted":
         log.info("%s: %s", item.key, pl.verdict)
     return {"verdict": pl.verdict, "max_penetration": pl.max_penetration,
             "asleep": int(np.sum(pl.at_rest)), "objects": len(pl.obj_ids), **facts}
@@ -186,12 +231,16 @@ def _view_map(run_dir: Path, scan, room, R_w2g: np.ndarray | None = None):
 def finish(ctx: StageContext, results: dict[str, dict]) -> None:
     """Count accepted and rejected drops (by reason) in RUN/simulate/summary.json."""
     counts: dict[str, int] = {}
+    tried: dict[str, int] = {}    # verdicts of every attempt, retried ones included
     for r in results.values():
         counts[r["verdict"]] = counts.get(r["verdict"], 0) + 1
+        for a in r.get("attempts", [{"verdict": r["verdict"]}]):
+            tried[a["verdict"]] = tried.get(a["verdict"], 0) + 1
     total = sum(counts.values())
     atomic_write_json(path(ctx.run_dir, SUMMARY_TPATH, stage=ctx.stage),
                       {"drops": total, "verdicts": counts,
-                       "accepted_share": (counts.get("accepted", 0) / total) if total else 0.0})
+                       "accepted_share": (counts.get("accepted", 0) / total) if total else 0.0,
+                       "attempts": sum(tried.values()), "attempt_verdicts": tried})
     rejected = total - counts.get("accepted", 0)
     if rejected:
         log.warning("simulate: %d of %d drops rejected (%s)", rejected, total,

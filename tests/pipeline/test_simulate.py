@@ -129,3 +129,37 @@ def test_room_cache_reloads_a_rewritten_proxy(tmp_path):
     # frame: the horizontal axes room_frame picks for a square room are arbitrary, so bounds in the room
     # frame of a 1.2 m square may exceed those of the 1.6 m one)
     assert np.ptp(i2.surface, axis=0).max() < np.ptp(i1.surface, axis=0).max()
+
+
+def _retried(cfg, seed, room=None):
+    from pipeline.simulate import simulate_with_retries
+
+    return simulate_with_retries(cfg, lambda k: np.random.default_rng([seed, k]), scene="s", drop=0,
+                                 room=_room() if room is None else room, up=np.array([0, 0, 1.0]), proxies=PROXIES)
+
+
+def test_a_never_settled_drop_is_retried_with_a_new_draw_and_accepted():
+    # 1 s is long enough for some draws of three thrown boxes to come to rest, not for others.
+    cfg = SimulateConfig(objects_per_drop=3, p_velocity=1.0, max_time=1.0, retries=2)
+    p, facts = _retried(cfg, 2)
+    assert [a["verdict"] for a in facts["attempts"]] == ["rejected:never-settled", "accepted"]
+    assert p.verdict == "accepted" and facts["attempt"] == 1 and p.at_rest.all()
+    # the placement is the second draw's own, and the same generators give the same bytes
+    q, _ = simulate(cfg, scene="s", drop=0, room=_room(), up=np.array([0, 0, 1.0]), proxies=PROXIES,
+                    rng=np.random.default_rng([2, 1]))
+    assert np.array_equal(p.t_m2w, q.t_m2w) and np.array_equal(p.R_m2w, q.R_m2w)
+    again, facts2 = _retried(cfg, 2)
+    assert facts2 == facts and np.array_equal(again.t_m2w, p.t_m2w) and np.array_equal(again.obj_ids, p.obj_ids)
+    # without retries the drop is lost
+    lost, facts0 = _retried(dataclasses.replace(cfg, retries=0), 2)
+    assert lost.verdict == "rejected:never-settled" and facts0["attempt"] == 0 and len(facts0["attempts"]) == 1
+
+
+def test_retries_stop_at_the_limit_and_spare_spawn_failures():
+    cfg = SimulateConfig(objects_per_drop=3, p_velocity=1.0, max_time=0.4, retries=2)
+    p, facts = _retried(cfg, 0)
+    assert [a["verdict"] for a in facts["attempts"]] == ["rejected:never-settled"] * 3
+    assert p.verdict == "rejected:never-settled" and facts["attempt"] == 2
+    # forty objects do not fit a 0.4 m room: another draw would not either
+    p, facts = _retried(SimulateConfig(objects_per_drop=40, retries=2), 0, room=_room(0.4))
+    assert p.verdict == "rejected:spawn" and len(facts["attempts"]) == 1
