@@ -1,6 +1,6 @@
 """End to end: images per hour of a whole ``scansynth run`` against the images' accuracy, per preset.
 
-    .venv/bin/python -m bench.e2e [--config configs/7scenes.toml] [--drops 20] [--workers 2]
+    .venv/bin/python -m bench.e2e [--config configs/7scenes.toml] [--drops 24] [--workers 2]
                                   [--presets fast,default,high] [--preset-drops high=2] [--repeats 2]
                                   [--baseline-tree /path/to/main-clone] [--mode whole|stages] [--seeds 0,1,2]
 
