@@ -104,8 +104,8 @@ def measure_accuracy(trees: list[Tree], presets: list[str], seeds: dict[str, lis
             for k in ("psnr_objects", "psnr_band"):
                 a[k + "_per_seed"] = [round(float(np.mean([x[k] for x in s])), 3) for s in per]
                 a[k] = round(float(np.mean(a[k + "_per_seed"])), 3)
-            a["band_over_photo_db_per_seed"] = [round(float(np.mean([x["psnr_band"] - x["photo_band_psnr"] for x in s])), 3)
-                                                for s in per]
+            a["band_over_photo_db_per_seed"] = [
+                round(float(np.mean([x["psnr_band"] - x["photo_band_psnr"] for x in s])), 3) for s in per]
     return acc
 
 
@@ -166,7 +166,8 @@ def summarise_speed(runs: list[dict], reference: str) -> dict:
             ref = out.get("baseline", {}).get(preset) if reference == "baseline" else out.get("ours", {}).get("fast")
             if ref is not None and ref is not s:
                 s["ratio"] = {k: [round(a[k] / b[k], 3) if b[k] else None for a, b in zip(s["runs"], ref["runs"])]
-                              for k in ("images_per_hour_wall", "images_per_hour_cpu", "images_per_hour_wall_without_fixed")}
+                              for k in ("images_per_hour_wall", "images_per_hour_cpu",
+                                        "images_per_hour_wall_without_fixed")}
                 s["ratio_against"] = "baseline" if reference == "baseline" else "ours fast"
     return out
 
@@ -323,7 +324,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     if a.baseline_tree is not None and not (a.baseline_tree / "pipeline").is_dir():
         ap.error(f"--baseline-tree {a.baseline_tree}: not a checkout of this project (no pipeline/ folder); "
                  f"e.g. git clone --branch main <repo> /tmp/main-clone")
-    if a.baseline_tree is not None and a.skip != "accuracy" and not (a.baseline_tree.resolve().parent / "shared" / "data").is_dir():
+    beside = a.baseline_tree.resolve().parent / "shared" / "data" if a.baseline_tree is not None else None
+    if beside is not None and a.skip != "accuracy" and not beside.is_dir():
         ap.error(f"--baseline-tree {a.baseline_tree}: its light suite runs read the LM-O models from ../shared/data "
                  f"beside it, absent there; clone it beside {REPO.parent / 'shared'} or link shared/ beside it")
     if a.skip != "accuracy":
@@ -350,8 +352,9 @@ def main(argv: list[str] | None = None) -> int:
                 + list(a.set))
 
     doc = {"config": _rel(a.config), "mode": a.mode, "workers": a.workers, "drops": a.drops,
-           "preset_drops": a.preset_drops, "repeats": a.repeats, "seeds": a.seeds, "other_seeds": a.other_seeds, "rooms": a.rooms,
-           "suite": str(a.suite), "code": {t.name: t.version() for t in trees}, "cores": os.cpu_count(),
+           "preset_drops": a.preset_drops, "repeats": a.repeats, "seeds": a.seeds, "other_seeds": a.other_seeds,
+           "rooms": a.rooms, "suite": str(a.suite), "code": {t.name: t.version() for t in trees},
+           "cores": os.cpu_count(),
            "machine": os.uname().nodename, "date": time.strftime("%Y-%m-%d %H:%M"),
            "load_average_start": round(os.getloadavg()[0], 2)}
     acc: dict = {}

@@ -137,14 +137,16 @@ def measure(a: argparse.Namespace, log) -> dict:
     }
     w = axes["workers"]
     for p in w:
-        p["ideal_images_per_hour"] = round(w[0]["images_per_hour_wall_per_image_stages"] * p["workers"] / w[0]["workers"], 1)
+        one = w[0]["images_per_hour_wall_per_image_stages"] / w[0]["workers"]
+        p["ideal_images_per_hour"] = round(one * p["workers"], 1)
         p["efficiency"] = round(p["images_per_hour_wall_per_image_stages"] / p["ideal_images_per_hour"], 3) \
             if p["ideal_images_per_hour"] else None
     mem = [point(base_workers, base_objects, 1.0, d) for d in _ints(a.memory_drops)]
     short, long_ = mem[0], mem[-1]
     growth = long_["peak_rss_mb"] / short["peak_rss_mb"] - 1 if short["peak_rss_mb"] else None
     tree_growth = long_["peak_tree_rss_mb"] / short["peak_tree_rss_mb"] - 1 if short["peak_tree_rss_mb"] else None
-    memory = {"runs": [{k: p[k] for k in ("drops", "images", "wall_s", "peak_rss_mb", "peak_tree_rss_mb")} for p in mem],
+    keys = ("drops", "images", "wall_s", "peak_rss_mb", "peak_tree_rss_mb")
+    memory = {"runs": [{k: p[k] for k in keys} for p in mem],
               "per_scan_peak_rss_mb": max(x["peak_rss_mb"] for x in prefixes.values()),
               "growth": None if growth is None else round(growth, 3),
               "tree_growth": None if tree_growth is None else round(tree_growth, 3),
