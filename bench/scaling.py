@@ -190,7 +190,7 @@ def chart(res: dict, path: Path, title: str) -> None:
     ax[3].grid(alpha=0.3)
     ax[3].legend(fontsize=7)
     fig.suptitle(title)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.94))
     fig.savefig(path, dpi=100)
     plt.close(fig)
 
