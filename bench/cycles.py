@@ -220,7 +220,7 @@ def _material(bpy, name: str, principled: bool):
     return mat
 
 
-def _build(bpy, arrays, meta: dict, spp: int, out_dir: Path) -> dict:
+def _build(bpy, arrays, meta: dict, spp: int, out_dir: Path, bounces: int = BOUNCES) -> dict:
     """Set up the Cycles scene of ``arrays``/``meta`` (:func:`scene_spec`); the compositor writes the passes to
     ``out_dir``. Returns the file output node's slot names."""
     from mathutils import Matrix
@@ -236,7 +236,7 @@ def _build(bpy, arrays, meta: dict, spp: int, out_dir: Path) -> dict:
     cy.denoiser = "OPENIMAGEDENOISE"
     cy.denoising_input_passes = "RGB_ALBEDO_NORMAL"
     cy.denoising_prefilter = "ACCURATE"
-    cy.max_bounces = cy.diffuse_bounces = cy.glossy_bounces = BOUNCES
+    cy.max_bounces = cy.diffuse_bounces = cy.glossy_bounces = bounces
     cy.pixel_filter_type = "BOX"
     cy.filter_width = 1.0
     sc.render.threads_mode = "FIXED"
@@ -305,16 +305,16 @@ def _read_exr(bpy, p: Path) -> np.ndarray:
     return buf.reshape(h, w, 4)[::-1].copy()
 
 
-def blender_main(spec: Path, out_dir: Path, spp: int) -> None:
+def blender_main(spec: Path, out_dir: Path, spp: int, bounces: int = BOUNCES) -> None:
     """Blender's process: render every frame of ``spec`` (:func:`scene_spec`, saved by :func:`render_cycles`)
-    at ``spp``; per frame ``out_dir/fNNNNNN.npz`` with the passes of the border region and the seconds of its
-    render call."""
+    at ``spp`` with ``bounces``; per frame ``out_dir/fNNNNNN.npz`` with the passes of the border region and the
+    seconds of its render call."""
     import bpy
     from mathutils import Matrix
 
     meta = json.loads(spec.with_suffix(".json").read_text())
     arrays = dict(np.load(spec))
-    _build(bpy, arrays, meta, spp, out_dir / "exr")
+    _build(bpy, arrays, meta, spp, out_dir / "exr", bounces)
     sc = bpy.context.scene
     cam = sc.camera
     flip = np.diag([1.0, -1.0, -1.0, 1.0])       # OpenCV camera axes -> Blender's (looks down -Z, +Y up)
@@ -351,14 +351,15 @@ def blender_main(spec: Path, out_dir: Path, spp: int) -> None:
 # Our side: the passes into a run folder, composite, score
 # ---------------------------------------------------------------------------------------------------
 
-def render_cycles(spec_arrays: dict, meta: dict, out_dir: Path, spp: int) -> list[dict]:
+def render_cycles(spec_arrays: dict, meta: dict, out_dir: Path, spp: int, bounces: int = BOUNCES) -> list[dict]:
     """Render ``meta``'s frames in a Blender process at ``spp``; the per-frame passes (:func:`blender_main`)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     spec = out_dir / "spec.npz"
     np.savez(spec, **spec_arrays)
     spec.with_suffix(".json").write_text(json.dumps(meta))
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    p = subprocess.run([sys.executable, "-m", "bench.cycles", "--blender", str(spec), str(out_dir), "--spp", str(spp)],
+    p = subprocess.run([sys.executable, "-m", "bench.cycles", "--blender", str(spec), str(out_dir), "--spp", str(spp),
+                        "--bounces", str(bounces)],
                        cwd=ROOT, capture_output=True, text=True)
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     if p.returncode != 0:
@@ -396,7 +397,7 @@ def trace_passes(got: dict, fr: dict) -> dict:
             "normal": nrm, "spp": spp, "exposure": np.float32(fr["exposure"])}
 
 
-def cycles_variant(room_dir: Path, work: Path, oracle: Path, spp: int, frames: int) -> dict:
+def cycles_variant(room_dir: Path, work: Path, oracle: Path, spp: int, frames: int, bounces: int = BOUNCES) -> dict:
     """Cycles at ``spp`` on a room whose oracle run is ``oracle``: renders, composites in a copy of the run
     folder (``work/cycles-sSPP``) and leaves the marker :func:`bench.lighting.run_room` reads; returns the
     seconds (wall and CPU per image: render, composite)."""
@@ -408,7 +409,7 @@ def cycles_variant(room_dir: Path, work: Path, oracle: Path, spp: int, frames: i
     run = work / f"cycles-s{spp}"
     shutil.rmtree(run, ignore_errors=True)
     shutil.copytree(oracle, run, ignore=shutil.ignore_patterns("composite", "bench_variant.json"))
-    got = render_cycles(arrays, meta, work / f"blender-s{spp}", spp)
+    got = render_cycles(arrays, meta, work / f"blender-s{spp}", spp, bounces)
     for fr, g in zip(meta["frames"], got):
         tp = trace_passes(g, fr)
         tp["spp"] = tp["spp"] * np.uint16(spp)
@@ -433,7 +434,8 @@ def cycles_variant(room_dir: Path, work: Path, oracle: Path, spp: int, frames: i
                                              for f in meta["frames"]]))}
 
 
-def run_room_all(room_dir: Path, work: Path, frames: int, spps, presets, reuse: bool = False) -> dict:
+def run_room_all(room_dir: Path, work: Path, frames: int, spps, presets, reuse: bool = False,
+                 bounces: int = BOUNCES) -> dict:
     """Our oracle variant at ``presets`` and Cycles at ``spps`` on one room, scored by
     :func:`bench.lighting.run_room` (``reuse``: our variants already run in ``work`` with the same settings are
     read back); the room's figures."""
@@ -459,9 +461,9 @@ def run_room_all(room_dir: Path, work: Path, frames: int, spps, presets, reuse: 
                           "brightness": v["brightness"], "cpu_s_per_image": v["trace_composite_cpu_s_per_frame"],
                           "fit_cpu_s": v["fit_s"], "trace_wall_s": v["trace_wall_s"]}
     for spp in spps:
-        secs = cycles_variant(room_dir, work, work / "oracle", spp, n)
+        secs = cycles_variant(room_dir, work, work / "oracle", spp, n, bounces)
         name = f"cycles-s{spp}"
-        bl.SETTINGS[name] = [f"cycles.spp={spp}"]
+        bl.SETTINGS[name] = [f"cycles.spp={spp}", f"cycles.bounces={bounces}"]
         (work / name / "bench_variant.json").write_text(json.dumps(
             {"sets": bl.SETTINGS[name], "seconds": [secs["wall_s_per_image"] * n, secs["cpu_s_per_image"] * n, 0.0]}))
         v = bl.run_room(room_dir, work, (name,), n, reuse=True)["variants"][name]
@@ -573,12 +575,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--presets", default=",".join(PRESETS), help="our presets (pipeline.presets)")
     p.add_argument("--work", default=str(WORK))
     p.add_argument("--out", default=str(RESULTS / "cycles"), help="output prefix (.json, .png)")
+    p.add_argument("--bounces", type=int, default=BOUNCES, help="Cycles' bounces (total, diffuse, glossy)")
     p.add_argument("--reuse", action="store_true", help="read back our variants already run in --work")
     p.add_argument("--blender", nargs=2, metavar=("SPEC", "OUT"), help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     spps = [int(x) for x in a.spp.split(",") if x]
     if a.blender:
-        blender_main(Path(a.blender[0]), Path(a.blender[1]), spps[0])
+        blender_main(Path(a.blender[0]), Path(a.blender[1]), spps[0], a.bounces)
         return 0
     try:
         import importlib.util
@@ -595,13 +598,14 @@ def main(argv: list[str] | None = None) -> int:
     if missing:
         p.error(f"rooms {missing} are not rendered in {suite}: python -m bench.lightsuite --out {suite} "
                 f"--rooms {','.join(missing)}")
-    res = {r: run_room_all(suite / r, Path(a.work).resolve() / r, a.frames, spps, presets, a.reuse) for r in rooms}
+    res = {r: run_room_all(suite / r, Path(a.work).resolve() / r, a.frames, spps, presets, a.reuse, a.bounces)
+           for r in rooms}
     summary = summarise(res, spps, presets)
     import bpy  # noqa: F401 - only its version, after the renders (Blender's process rendered them)
 
     doc = {"summary": summary, "rooms": res,
            "what": "Blender Cycles (CPU, OIDN) vs our oracle variant on the light suite; see bench/cycles.py",
-           "cycles": {"version": bpy.app.version_string, "threads": THREADS, "bounces": BOUNCES,
+           "cycles": {"version": bpy.app.version_string, "threads": THREADS, "bounces": a.bounces,
                       "denoiser": "OIDN, albedo + normal guides", "pixel_filter": "box 1 px"},
            "suite": str(suite), "machine": os.uname().nodename, "date": time.strftime("%Y-%m-%d %H:%M")}
     out = Path(a.out)

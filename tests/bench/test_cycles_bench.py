@@ -57,7 +57,8 @@ def test_area_light_radiance_under_a_wide_light(tmp_path):
     plane_v = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]], np.float32)
     plane_f = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
     far_v = np.array([[50.0, 50.0, -5.0], [51.0, 50.0, -5.0], [50.0, 51.0, -5.0]], np.float32)
-    arrays = {"room_v": far_v, "room_f": np.array([[0, 1, 2]], np.int32), "room_albedo": np.full((3, 3), 0.5, np.float32),
+    arrays = {"room_v": far_v, "room_f": np.array([[0, 1, 2]], np.int32),
+              "room_albedo": np.full((3, 3), 0.5, np.float32),
               "obj0_v": plane_v, "obj0_f": plane_f, "obj0_n": np.tile([0.0, 0.0, 1.0], (4, 1)).astype(np.float32),
               "obj0_albedo": np.ones((4, 3), np.float32)}
     T_c2w = np.eye(4)
@@ -89,9 +90,11 @@ def test_objects_land_where_opencv_projects_them(tmp_path):
     T_c2w = np.eye(4)
     T_c2w[:3, :3] = R
     K = np.array([[60.0, 0.0, 20.0], [0.0, 60.0, 9.0], [0.0, 0.0, 1.0]])
-    arrays = {"room_v": far_v, "room_f": np.array([[0, 1, 2]], np.int32), "room_albedo": np.full((3, 3), 0.5, np.float32),
+    arrays = {"room_v": far_v, "room_f": np.array([[0, 1, 2]], np.int32),
+              "room_albedo": np.full((3, 3), 0.5, np.float32),
               "obj0_v": sq, "obj0_f": np.array([[0, 1, 2], [0, 2, 3]], np.int32),
-              "obj0_n": np.tile([0.0, 0.0, -1.0], (4, 1)).astype(np.float32), "obj0_albedo": np.ones((4, 3), np.float32)}
+              "obj0_n": np.tile([0.0, 0.0, -1.0], (4, 1)).astype(np.float32),
+              "obj0_albedo": np.ones((4, 3), np.float32)}
     meta = {"objects": 1, "lights": [],
             "frames": [{"frame": 0, "K": K.tolist(), "T_c2w": T_c2w.tolist(), "width": 48, "height": 32,
                         "border": [0, 0, 48, 32], "exposure": 1.0}]}
@@ -139,6 +142,7 @@ def test_cycles_on_the_tiny_suite(tiny):
     run = tiny / "work" / "spot" / "cycles-s16"
     for f in range(2):
         cov = np.load(run / "trace" / "scan" / "drop0000" / f"f{f:06d}.npz")["coverage"]
-        mask = cv2.imread(str(tiny / "suite" / "spot" / "truth" / f"frame-{f:06d}.mask.png"), cv2.IMREAD_UNCHANGED) > 0
+        mask = cv2.imread(str(tiny / "suite" / "spot" / "truth" / f"frame-{f:06d}.mask.png"),
+                          cv2.IMREAD_UNCHANGED) > 0
         iou = ((cov > 0.5) & mask).sum() / ((cov > 0.5) | mask).sum()
         assert iou > 0.85, iou             # 160 x 120: a third of the object pixels are on an edge
