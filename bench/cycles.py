@@ -576,7 +576,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", default=str(WORK))
     p.add_argument("--out", default=str(RESULTS / "cycles"), help="output prefix (.json, .png)")
     p.add_argument("--bounces", type=int, default=BOUNCES, help="Cycles' bounces (total, diffuse, glossy)")
-    p.add_argument("--reuse", action="store_true", help="read back our variants already run in --work")
+    p.add_argument("--reuse", action="store_true", help="read back rooms and our variants already run in --work "
+                   "with the same settings")
     p.add_argument("--blender", nargs=2, metavar=("SPEC", "OUT"), help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     spps = [int(x) for x in a.spp.split(",") if x]
@@ -598,8 +599,21 @@ def main(argv: list[str] | None = None) -> int:
     if missing:
         p.error(f"rooms {missing} are not rendered in {suite}: python -m bench.lightsuite --out {suite} "
                 f"--rooms {','.join(missing)}")
-    res = {r: run_room_all(suite / r, Path(a.work).resolve() / r, a.frames, spps, presets, a.reuse, a.bounces)
-           for r in rooms}
+    res = {}
+    for r in rooms:
+        # a room measured earlier with the same settings on the same render of the suite is read back with --reuse
+        work = Path(a.work).resolve() / r
+        from bench.lighting import render_fingerprint
+
+        key = {"frames": a.frames, "spp": spps, "presets": list(presets), "bounces": a.bounces,
+               "render": render_fingerprint(suite / r)}
+        done = work / "cycles_room.json"
+        if a.reuse and done.is_file() and json.loads(done.read_text())["key"] == key:
+            res[r] = json.loads(done.read_text())["result"]
+            log.info("%s: read back from %s", r, done)
+            continue
+        res[r] = run_room_all(suite / r, work, a.frames, spps, presets, a.reuse, a.bounces)
+        done.write_text(json.dumps({"key": key, "result": res[r]}, default=float))
     summary = summarise(res, spps, presets)
     import bpy  # noqa: F401 - only its version, after the renders (Blender's process rendered them)
 
