@@ -523,6 +523,14 @@ def summarise(rooms: dict, spps, presets) -> dict:
         pts = sorted((cyc[str(s)]["cpu_s_per_image"], cyc[str(s)]["psnr_objects"]) for s in spps)
         out["ratio_cpu"] = {"at_psnr_objects_db": target, "ours_cpu_s_per_image": ours["default"]["cpu_s_per_image"],
                             **ratio_at_equal_psnr(target, ours["default"]["cpu_s_per_image"], pts)}
+        out["ratio_cpu_per_room"] = {}
+        for r in names:
+            o = rooms[r]["ours"]["default"]
+            rp = sorted((rooms[r]["cycles"][str(s)]["cpu_s_per_image"], rooms[r]["cycles"][str(s)]["psnr_objects"])
+                        for s in spps)
+            got = ratio_at_equal_psnr(o["psnr_objects"], o["cpu_s_per_image"], rp)
+            out["ratio_cpu_per_room"][r] = {"at_psnr_objects_db": round(o["psnr_objects"], 3),
+                                            "ratio": round(got["ratio"], 3), "reached": got["reached"]}
         # Cycles' whole process (Blender's start-up and scene set-up too), as ours includes its stage's start-up
         pts = sorted((cyc[str(s)]["process_cpu_s_per_image"], cyc[str(s)]["psnr_objects"]) for s in spps)
         out["ratio_cpu_whole_process"] = {"at_psnr_objects_db": target,
@@ -535,6 +543,7 @@ def chart(summary: dict, rooms: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     fig, ax = plt.subplots(1, 2, figsize=(13, 5))
     for k, key in enumerate(("psnr_objects", "psnr_band")):
@@ -555,6 +564,8 @@ def chart(summary: dict, rooms: dict, path: Path) -> None:
         for p in o:
             a.annotate(p, (o[p]["cpu_s_per_image"], o[p][key]), fontsize=8)
         a.set_xscale("log")
+        a.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        a.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         a.set_xlabel("CPU s per image (2 cores; Cycles: render + composite, ours: trace + composite)")
         a.set_ylabel(("objects" if k == 0 else "band") + " PSNR vs Mitsuba truth (dB)")
         a.legend(fontsize=8)
