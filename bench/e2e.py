@@ -173,19 +173,17 @@ def summarise_speed(runs: list[dict], reference: str) -> dict:
 
 
 def read_cycles(path: Path) -> list[dict]:
-    """Blender Cycles' points from ``path`` (bench/cycles.py's JSON) as ``{label, images_per_hour, psnr_objects,
-    psnr_band}``; [] when the file is absent. Each point is a dict with ``seconds_per_image`` (on
-    :data:`CYCLES_CORES` cores) and ``psnr_objects`` (``psnr_band`` optional), found in ``figures.points`` or in
-    the BenchResult series."""
+    """Blender Cycles' points from ``path`` (bench/cycles.py's JSON: ``summary.cycles`` maps samples per pixel to
+    ``cpu_s_per_image``, ``psnr_objects`` and ``psnr_band``) as ``{label, images_per_hour, psnr_objects,
+    psnr_band}``, CPU seconds spread over :data:`CYCLES_CORES` cores; [] when the file is absent."""
     if not path.is_file():
         return []
     doc = json.loads(path.read_text())
-    pts = list((doc.get("figures") or {}).get("points") or [])
-    pts += [p for series in (doc.get("series") or {}).values() for p in series]
     out = []
-    for p in pts:
-        if isinstance(p, dict) and p.get("seconds_per_image") and p.get("psnr_objects") is not None:
-            out.append({"label": str(p.get("label", "")), "images_per_hour": 3600.0 / float(p["seconds_per_image"]),
+    for spp, p in sorted(((doc.get("summary") or {}).get("cycles") or {}).items(), key=lambda kv: int(kv[0])):
+        if p.get("cpu_s_per_image") and p.get("psnr_objects") is not None:
+            per_hour = 3600.0 * CYCLES_CORES / float(p["cpu_s_per_image"])
+            out.append({"label": f"Cycles {spp} spp", "images_per_hour": per_hour,
                         "psnr_objects": float(p["psnr_objects"]),
                         "psnr_band": None if p.get("psnr_band") is None else float(p["psnr_band"])})
     return out

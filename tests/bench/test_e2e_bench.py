@@ -37,14 +37,14 @@ def test_cycles_points_become_images_per_hour(tmp_path):
     from bench.e2e import read_cycles
 
     assert read_cycles(tmp_path / "absent.json") == []
-    doc = {"figures": {"points": [{"label": "128 spp", "seconds_per_image": 36.0, "psnr_objects": 31.5,
-                                   "psnr_band": 35.0}]},
-           "series": {"cycles": [{"label": "32 spp", "seconds_per_image": 7.2, "psnr_objects": 29.0},
-                                 {"label": "no figures", "speed": 3.0, "accuracy": 1.0}]}}
+    doc = {"summary": {"cycles": {"16": {"cpu_s_per_image": 14.4, "psnr_objects": 31.5, "psnr_band": 35.0},
+                                  "4": {"cpu_s_per_image": 7.2, "psnr_objects": 29.0},
+                                  "64": {"wall_s_per_image": 3.0}}}}
     (tmp_path / "cycles.json").write_text(json.dumps(doc))
     got = read_cycles(tmp_path / "cycles.json")
-    assert [(p["label"], p["images_per_hour"], p["psnr_band"]) for p in got] == [("128 spp", 100.0, 35.0),
-                                                                                ("32 spp", 500.0, None)]
+    # CPU seconds over the 2 cores: 7.2 CPU s per image -> 1,000 images per hour
+    assert [(p["label"], p["images_per_hour"], p["psnr_band"]) for p in got] == [("Cycles 4 spp", 1000.0, None),
+                                                                                ("Cycles 16 spp", 500.0, 35.0)]
 
 
 def _run(tree: str, preset: str, rep: int, per_hour: float, images: int = 300) -> dict:
