@@ -175,9 +175,16 @@ class RoomPoints:
 
 def room_points(scene: TraceScene, camera: Camera, candidates: np.ndarray, min_effect: float) -> RoomPoints:
     """The room points seen by the pixels ``candidates`` (H*W,) bool that some object's bounding sphere
-    covers by at least ``min_effect`` (elsewhere the objects cannot change the light by as much)."""
+    covers by at least ``min_effect`` (elsewhere the objects cannot change the light by as much).
+
+    Only pixels whose ray passes within a sphere's reach (:func:`reach_mask`) are cast: a room point
+    elsewhere on the frame is too far from every object whatever depth the ray meets it at."""
     pix = np.flatnonzero(candidates)
     o, d = camera.rays(pix, np.full((pix.size, 2), 0.5))
+    c, r = instance_spheres(scene)
+    if min_effect > 0:
+        keep = reach_mask(o, d, c, r / np.sqrt(min_effect))
+        pix, o, d = pix[keep], o[keep], d[keep]
     h = scene.intersector.intersect(o, d)
     room_hit = h.hit & (scene.tri_inst[np.maximum(h.prim, 0)] == 0)
     pix, d = pix[room_hit], d[room_hit]
@@ -189,12 +196,25 @@ def room_points(scene: TraceScene, camera: Camera, candidates: np.ndarray, min_e
     ng = np.cross(p1 - p0, p2 - p0)
     ng /= np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-20)
     ng = np.where((np.einsum("ij,ij->i", ng, d) > 0)[:, None], -ng, ng).astype(np.float32)
-    c, r = instance_spheres(scene)
     sin2 = sphere_cover(p, (c, r))                                          # (n, N)
     near = (sin2 >= min_effect).any(axis=1)
     pix, p, ng = pix[near], p[near], ng[near]
     sin2 = sin2[near]
     return RoomPoints(pix=pix, p=p, ng=ng, sin2=sin2, centres=c)
+
+
+def reach_mask(o: np.ndarray, d: np.ndarray, centres: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """(R,) bool: rays ``o + t d`` (``o``, unit ``d`` (R, 3), t >= 0) that pass within ``reach`` (N,) of some
+    of ``centres`` (N, 3). Widened by 1 % + 1 mm, so that float32 rays and float64 distances never drop a
+    ray whose room point :func:`sphere_cover` would keep."""
+    keep = np.zeros(o.shape[0], bool)
+    o64, d64 = o.astype(np.float64), d.astype(np.float64)
+    for ck, rk in zip(np.asarray(centres, np.float64), np.asarray(reach, np.float64)):
+        v = ck[None] - o64
+        tc = np.maximum(np.einsum("ij,ij->i", v, d64), 0.0)
+        dist2 = np.einsum("ij,ij->i", v, v) - tc * tc
+        keep |= dist2 <= (1.01 * rk + 1e-3) ** 2
+    return keep
 
 
 def light_without_objects(scene: TraceScene, room_isect: Intersector, obj_isect: Intersector, pts: RoomPoints,
