@@ -85,6 +85,33 @@ def test_shadow_ratio_is_one_far_away_and_without_objects():
     assert (shadow_ratio(empty, cam, labels, np.random.default_rng(0)) == 1).all()
 
 
+def test_room_points_cast_only_near_rays_yet_find_every_near_point():
+    """The pass casts only rays passing within an object's reach; the points it keeps are exactly those a
+    ray from every pixel would find (the reference: every pixel's hit, then the cover test)."""
+    from pipeline.trace.scene import instance_spheres, sphere_cover
+    from pipeline.trace.shadow import reach_mask, room_points
+
+    sc, cam = _shadow_scene(0.5)
+    every = np.ones(48 * 64, bool)
+    for min_effect in (0.02, 0.05, 0.2):
+        pts = room_points(sc, cam, every, min_effect)
+        o, d = cam.rays(np.arange(48 * 64), np.full((48 * 64, 2), 0.5))
+        h = sc.intersector.intersect(o, d)
+        room = h.hit & (sc.tri_inst[np.maximum(h.prim, 0)] == 0)
+        p = o + h.t[:, None] * d
+        near = room & (sphere_cover(np.where(room[:, None], p, 0), instance_spheres(sc)) >= min_effect).any(axis=1)
+        assert np.array_equal(pts.pix, np.flatnonzero(near)) and 0 < near.sum() < room.sum()
+        c, r = instance_spheres(sc)
+        cast = reach_mask(o, d, c, r / np.sqrt(min_effect))
+        if min_effect == 0.2:   # a reach of 0.67 m: most of the frame is never cast
+            assert cast.sum() < 0.6 * cast.size
+    # a ray passing 1 m beside a centre is kept for a reach of 1 m and dropped for 0.9 m; behind the camera never
+    o1, d1 = np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32)
+    assert reach_mask(o1, d1, np.array([[1.0, 0, 5]]), np.array([1.0]))[0]
+    assert not reach_mask(o1, d1, np.array([[1.0, 0, 5]]), np.array([0.9]))[0]
+    assert not reach_mask(o1, d1, np.array([[0.0, 0, -5]]), np.array([1.0]))[0]
+
+
 def test_contact_shadow_keeps_its_strength_beside_the_object():
     """Issue 16: a sphere resting on the floor. Within 3 px of its silhouette the default (stride 2,
     smoothed) ratio has the mean of a full-resolution reference; object pixels must not pull it towards 1
