@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 
 ZNEAR = 0.01   # m, default near clip plane: geometry nearer than this is not drawn
 
+
 class _View:
     """One OffscreenRenderer (GL context) of a fixed viewport size, with its own uploaded meshes.
 
