@@ -300,6 +300,13 @@ class TraceConfig:
                                    "take the colour of the unclipped pixels their edges cover in part, over the "
                                    "surface around them, where at least 30 such pixels show it; false = the "
                                    "colour the fit finds, which the albedo's colour sets")
+    fit_capture_views: int = option(3, "fit lighting: a scan with fewer photos than this (a one-view capture) cannot pin "
+                                    "the light's level or colour: the fitted lights turn white (the camera's white "
+                                    "balance) at the level where the photographed surfaces average "
+                                    "fit_capture_albedo (the camera's auto exposure); 0 = never", min=0)
+    fit_capture_albedo: float = option(0.18, "fit lighting, captures of fewer than fit_capture_views photos: mean "
+                                       "albedo (linear luminance) of the photographed surfaces, the average scene's "
+                                       "reflectance that exposure meters assume", min=0.01, max=0.95)
     lights_file: str = option("", "fit lighting: JSON file of emitters you know, [{\"corners\": 4 x [x, y, z] world "
                               "metres, \"radiance\": [r, g, b] linear, 1 = sensor white}]; each emits on the side "
                               "its corners turn counter-clockwise around (normal (c1 - c0) x (c2 - c0)); they light the "

@@ -247,7 +247,8 @@ def fit_settings(cfg: TraceConfig, width: int):
                        threshold=cfg.light_threshold, radiance_scale=cfg.radiance_scale,
                        white_prior=cfg.fit_white_prior,
                        white_patch=cfg.fit_white_patch, ceiling_albedo=cfg.fit_ceiling_albedo,
-                       edge_colour=cfg.fit_edge_colour,
+                       edge_colour=cfg.fit_edge_colour, capture_views=cfg.fit_capture_views,
+                       capture_albedo=cfg.fit_capture_albedo,
                        known_complete=cfg.lights_complete)
 
 

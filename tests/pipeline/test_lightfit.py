@@ -1420,3 +1420,32 @@ def test_edge_colour_keeps_a_lights_luminance_and_sensor_white():
     finally:
         logging.getLogger("pipeline.trace.lightfit").removeHandler(handler)
     assert len(caplog_lines) == 1 and "2.0x" in caplog_lines[0] and "fit_edge_colour = false" in caplog_lines[0]
+
+
+def test_one_view_takes_the_cameras_white_and_an_average_albedo(caplog):
+    """One photo of the room lit from above, its walls tinted green (a green room, or green light: one view
+    cannot tell). The fit alone puts the tint into the light; with one view the light is white (the camera's
+    white balance) and the photographed surfaces average the world's albedo (0.18): the light is
+    brighter than the fit's own, which takes the brightest walls for white paint. The log says so in a line."""
+    v, f, colors, fr = lit_from_above()
+    tint = np.array([0.8, 1.0, 0.7])
+    img, Kf, T = fr[0]
+    green = encode_u8(srgb_to_linear(img.astype(np.float64) / 255.0) * tint)
+    colors = encode_u8(srgb_to_linear(colors.astype(np.float64) / 255.0) * tint)
+    base = dict(points=600, stride=2, cell=0.5, refine=0.0)
+
+    def lamps(rl):
+        return rl.radiance[rl.num_mesh_vertices:].astype(np.float64)
+
+    own = fit_room_lights(v, f, colors, [(green, Kf, T)], up=UP, rng=np.random.default_rng(1),
+                          settings=FitSettings(**base, capture_views=0))
+    with caplog.at_level(logging.WARNING):
+        cap = fit_room_lights(v, f, colors, [(green, Kf, T)], up=UP, rng=np.random.default_rng(1),
+                              settings=FitSettings(**base))
+    p_own, p_cap = lamps(own).sum(axis=0), lamps(cap).sum(axis=0)
+    assert p_own[1] > 1.1 * p_own[2], p_own                       # the fit alone: the light took the tint
+    assert np.allclose(p_cap, p_cap[1], rtol=1e-6), p_cap          # one view: white
+    assert "capture_prior" not in own.summary and cap.summary["capture_prior"]["views"] == 1
+    lum = np.array([0.2126, 0.7152, 0.0722])
+    assert p_cap @ lum > 1.5 * (p_own @ lum), (p_cap, p_own)   # 0.18 is darker than the walls the fit found
+    assert any("1 view cannot pin the light" in r.getMessage() for r in caplog.records)

@@ -8,6 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from pipeline.trace.lightfit.albedo import finite
+from pipeline.trace.lightfit.capture import pin_capture
 from pipeline.trace.lightfit.closure import close_room, facing_away
 from pipeline.trace.lightfit.colour import say_edge_raise
 from pipeline.trace.lightfit.observe import MIN_FIT_POINTS, observe, select_points
@@ -96,4 +97,7 @@ def _fit(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None, fra
     if sol.raised is not None:      # the clipped lights took the edges' colour (not with every light given)
         summary["clipped_edge_raised"] = round(sol.raised, 3)
         say_edge_raise(name, obs.edge_colour, sol.raised)
-    return room_lights(pb, sol, summary, name, t0)
+    rl = room_lights(pb, sol, summary, name, t0)
+    if len(frames) < st.capture_views and sol.level is not None and not st.known_complete:
+        rl = pin_capture(rl, sol.rho[pb.patch], st.capture_albedo, len(frames), name)
+    return rl

@@ -33,4 +33,6 @@ class FitSettings:
     white_patch: float = 1.0    # last stage: pull of the brightest surfaces' albedo toward grey (0 = white_prior's)
     ceiling_albedo: float = CEILING_ALBEDO  # the unseen ceiling's albedo, white (0 = the upper walls', as the sides)
     known_complete: bool = False  # the known lights are every light: the fit adds none (trace.lights_complete)
+    capture_views: int = 3      # fewer photos than this: the light's level and colour from the camera (``capture``)
+    capture_albedo: float = 0.18  # then: the photographed surfaces' mean albedo (luminance, linear)
     edge_colour: bool = True    # the lights the photos saw clipped take the colour of the pixels their edges cover

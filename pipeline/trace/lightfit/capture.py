@@ -1,0 +1,57 @@
+"""Step 9, what few views cannot pin: the light's level and colour of a capture of one or two photos.
+
+A photo of a table and a wall shows little of what lights it: its brightness is albedo x light with either
+free (the level search's objective is nearly flat), and a coloured surface passes for coloured light, so the
+fitted level and colour follow the priors and change with whatever else changes in the mesh (another object
+cut out of it). What such a photo does pin:
+
+- the camera's white balance: the light that dominates a photo is white in the photo's colour space, so the
+  fitted emitters take white at the luminance the fit found;
+- the camera's auto exposure: it puts the average scene at a known grey, so the light's level is the one at
+  which the photographed surfaces' mean albedo is the world's average reflectance (``AVERAGE_ALBEDO``, the 18 %
+  grey card an exposure meter assumes). The fitted albedo follows the light, so the photos stay explained.
+
+The emitters keep the places and shapes the fit found. One warning line says what was assumed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from pipeline.color import LUMINANCE_F64
+
+log = logging.getLogger(__name__)
+
+AVERAGE_ALBEDO = 0.18         # mean reflectance of an average scene (the exposure meter's grey card), linear
+
+
+def pin_capture(rl, rho_points: np.ndarray, albedo: float, views: int, name: str):
+    """``rl`` (a fitted :class:`~pipeline.trace.lightfit.RoomLights`) with its emitters white and scaled so the
+    fitted albedo ``rho_points (n, 3)`` of the photographed points averages ``albedo`` in luminance; ``views``
+    is the number of photos the fit had (for the message). The summary records it under ``capture_prior``."""
+    nv = rl.num_mesh_vertices
+    rad = rl.radiance.astype(np.float64)
+    emit = rad[nv:]
+    if not len(emit) or not len(rho_points):
+        return rl
+    mean_albedo = float(np.mean(rho_points @ LUMINANCE_F64))
+    if not np.isfinite(mean_albedo) or mean_albedo <= 0:
+        return rl
+    scale = mean_albedo / albedo
+    lum = emit @ LUMINANCE_F64
+    white = np.repeat(lum[:, None], 3, axis=1) * scale
+    gain = white.sum(axis=0) / np.maximum(emit.sum(axis=0), 1e-12)    # (3,) light after over before, per channel
+    rad[nv:] = white
+    alb = None if rl.albedo is None else (rl.albedo / np.maximum(gain, 1e-6)).astype(np.float32)
+    note = (f"{views} view{'s' if views != 1 else ''} cannot pin the light's level or colour: white light (the "
+            f"camera's white balance) at the level where the photographed surfaces average {albedo:.2f} albedo "
+            f"(trace.fit_capture_albedo; the fit's own: {mean_albedo:.2f})")
+    log.warning("light fit of %s: %s", name, note)
+    summary = dict(rl.summary, capture_prior={"views": views, "albedo": albedo,
+                                              "fitted_mean_albedo": round(mean_albedo, 4),
+                                              "gain_rgb": [round(float(g), 4) for g in gain]},
+                   capture_note=note)
+    return dataclasses.replace(rl, radiance=rad.astype(np.float32), albedo=alb, summary=summary)
