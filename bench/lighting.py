@@ -267,7 +267,8 @@ def run_room(room_dir: Path, work: Path, variants: tuple[str, ...], frames: int 
             lc, lt = decode(comp)[mask], decode(tru)[mask]
             frames.append({"psnr_objects": masked_psnr(comp, tru, mask), "ssim_objects": ssim(comp, tru, mask),
                            "psnr_band": masked_psnr(comp, tru, band), "ssim_band": ssim(comp, tru, band),
-                           "brightness": (lc.mean(axis=0) / np.maximum(lt.mean(axis=0), 1e-9)).tolist()})
+                           "brightness": (lc.mean(axis=0) / np.maximum(lt.mean(axis=0), 1e-9)).tolist(),
+                           "truth_mean": lt.mean(axis=0).tolist()})
             if len(photo_band) < n:
                 photo_band.append(masked_psnr(photo, tru, band))
         ok = [fr for fr in frames if fr]

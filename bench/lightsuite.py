@@ -194,6 +194,7 @@ class RoomSpec:
     surfaces: list[Surface]
     emitters: list[Emitter]
     level: float                    # target mean sRGB code of the photos (sets the exposure)
+    white_balance: bool = False     # the camera's grey-world white balance on the photos and the truth
 
 
 def _box(centre, size) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -590,20 +591,29 @@ class Renderer:
         return np.array(img, dtype=np.float32)[..., :3]
 
 
-def choose_exposure(renderer: Renderer, poses, K, width, height, level: float, spp: int, seed: int) -> float:
+def choose_exposure(renderer: Renderer, poses, K, width, height, level: float, spp: int, seed: int,
+                    white_balance: bool = False) -> float | np.ndarray:
     """Exposure making the mean 8-bit sRGB code of a few quarter-resolution renders of the empty room
-    equal ``level``."""
+    equal ``level``; with ``white_balance`` per channel (3,), as a camera's automatic white balance sets it:
+    the gains that make the renders' mean grey (grey world) at unchanged luminance, times that exposure."""
     w, h = max(16, width // 4), max(12, height // 4)
     Kq = intrinsics(w, h)
     Kq[0, 0] = Kq[1, 1] = K[0, 0] * (w / width)
     idx = np.unique(np.linspace(0, len(poses) - 1, min(4, len(poses))).round().astype(int))
     imgs = np.stack([renderer.render(poses[i], Kq, w, h, spp, seed + i, objects=False) for i in idx])
+    gains = np.ones(3)
+    if white_balance:
+        from pipeline.color import LUMINANCE_F64
+        mean = imgs.reshape(-1, 3).mean(axis=0)
+        gains = float(mean @ LUMINANCE_F64) / np.maximum(mean, 1e-12)
+        imgs = imgs * gains
     lo, hi = -20.0, 20.0
     for _ in range(60):
         mid = 0.5 * (lo + hi)
         m = float(encode_u8(imgs * math.exp(mid)).mean())
         lo, hi = (mid, hi) if m < level else (lo, mid)
-    return float(math.exp(0.5 * (lo + hi)))
+    e = math.exp(0.5 * (lo + hi))
+    return e * gains if white_balance else float(e)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -716,7 +726,8 @@ def blend_weight(tc: np.ndarray, pc: np.ndarray, bg: np.ndarray, sigma: float) -
 
 
 def truth_image(R: Renderer, photo: np.ndarray, mask: np.ndarray, T, K, width, height, crop, boxes,
-                spp_crop: int, spp_objects: int, seed: int, exposure: float) -> tuple[np.ndarray, dict, dict]:
+                spp_crop: int, spp_objects: int, seed: int, exposure: float | np.ndarray
+                ) -> tuple[np.ndarray, dict, dict]:
     """The true image (linear, after exposure) and the renders it is made of.
 
     Outside ``crop``: the photo. Background pixels inside it: ``tc + beta (photo - pc)``, where ``tc`` and
@@ -749,16 +760,18 @@ def truth_image(R: Renderer, photo: np.ndarray, mask: np.ndarray, T, K, width, h
 
 def build_room(out: Path, name: str, *, frames: int = FRAMES, width: int = WIDTH, height: int = HEIGHT,
                spp_photo: int = SPP_PHOTO, spp_crop: int = SPP_CROP, spp_objects: int = SPP_OBJECTS,
-               seed: int = SEED, obj_ids=OBJ_IDS, texture_size: int = 256, rebuild: bool = False) -> dict:
+               seed: int = SEED, obj_ids=OBJ_IDS, texture_size: int = 256, rebuild: bool = False,
+               spec: RoomSpec | None = None, room_seed: int | None = None) -> dict:
     """Render one room into ``out/<name>`` and return its room.json record. A complete room is kept (with a
     warning when its parameters differ, unless ``rebuild``); an unfinished one resumes at its first
-    unfinished frame, or starts again when its parameters differ."""
+    unfinished frame, or starts again when its parameters differ. ``spec`` and ``room_seed``: a room that is
+    not one of the suite's (:mod:`bench.lightgen`'s), by default :func:`room_spec` of ``name``."""
     from pipeline.synthscan.writers import matrix_text, write_frame
 
     root = Path(out) / name
     done = root / "done.json"
-    spec = room_spec(name)
-    room_seed = seed + 100_000 * (ROOMS + DEV_ROOMS).index(name)
+    spec = room_spec(name) if spec is None else spec
+    room_seed = seed + 100_000 * (ROOMS + DEV_ROOMS).index(name) if room_seed is None else room_seed
     scan, truth_dir, work = root / "scan", root / "truth", root / "mitsuba"
     models = load_models(obj_ids)
     K = intrinsics(width, height)
@@ -803,14 +816,15 @@ def build_room(out: Path, name: str, *, frames: int = FRAMES, width: int = WIDTH
         scene_files(spec, objects, models, work, room_seed, texture_size)
         t0 = time.perf_counter()
         exposure = choose_exposure(Renderer(spec, objects, work), poses, K, width, height, spec.level, SPP_EXPOSURE,
-                                   room_seed + 7)
-        plan = {"params": params, "poses": poses.tolist(), "exposure": exposure,
+                                   room_seed + 7, spec.white_balance)
+        plan = {"params": params, "poses": poses.tolist(), "exposure": np.asarray(exposure).tolist(),
                 "seconds_exposure": time.perf_counter() - t0,
                 "objects": [{"obj_id": o["obj_id"], "R_m2w": o["R_m2w"].tolist(), "t_m2w": o["t_m2w"].tolist()}
                             for o in objects]}
         atomic_write_json(plan_path, plan)
     poses = np.asarray(plan["poses"])
-    exposure = float(plan["exposure"])
+    exposure = plan["exposure"]
+    exposure = float(exposure) if np.ndim(exposure) == 0 else np.asarray(exposure, np.float64)
     objects = [{"obj_id": o["obj_id"], "R_m2w": np.asarray(o["R_m2w"]), "t_m2w": np.asarray(o["t_m2w"])}
                for o in plan["objects"]]
     mats = scene_files(spec, objects, models, work, room_seed, texture_size)
@@ -889,7 +903,8 @@ def build_room(out: Path, name: str, *, frames: int = FRAMES, width: int = WIDTH
          "frames_visible": [i for i, r in enumerate(recs) if r["lights_visible_px"][e.name] > 0]}
         for e in spec.emitters])
     room = {
-        "room": name, "exposure": exposure, "target_mean_srgb": spec.level,
+        "room": name, "exposure": np.asarray(exposure).tolist(), "target_mean_srgb": spec.level,
+        "white_balance": spec.white_balance,
         "mean_srgb_photo": float(np.mean([r["mean_srgb_photo"] for r in recs])),
         "spp": {"photo": spp_photo, "crop_pair": spp_crop, "objects": spp_objects, "exposure_prepass": SPP_EXPOSURE},
         "sampler": SAMPLER, "integrator": {"type": "path", "max_depth": MAX_DEPTH},

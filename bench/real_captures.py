@@ -9,7 +9,8 @@ agrees with the model's, shrunk by ``SCORE_ERODE`` pixels against registration s
 
 - PSNR of the composite against the photo (8-bit sRGB), beside a **naive paste** of the model's own colours
   (each pixel the colour of the model vertex nearest to it: no light at all);
-- per-channel brightness, photo over ours, in linear light (1 = right; 2 = ours half as bright);
+- per-channel brightness, photo over ours, in linear light (1 = right; 2 = ours half as bright), and photo over
+  the paste (how far the model's own colours are from the real object's under this photo's light and camera);
 - the lights the fit found for each cut-out of the same photo: total power and colour (the angle between RGB
   power vectors), whose spread across cut-outs measures stability.
 
@@ -202,9 +203,10 @@ def angle_deg(a, b) -> float:
 
 
 def score(photo, ours, paste, m) -> dict:
-    lp, lo = _linear(photo)[m], _linear(ours)[m]
+    lp, lo, la = _linear(photo)[m], _linear(ours)[m], _linear(paste)[m]
     return {"psnr": _psnr(photo, ours, m), "paste_psnr": _psnr(photo, paste, m),
-            "brightness_rgb": (lp.mean(0) / np.maximum(lo.mean(0), 1e-6)).tolist(), "pixels": int(m.sum())}
+            "brightness_rgb": (lp.mean(0) / np.maximum(lo.mean(0), 1e-6)).tolist(),
+            "paste_brightness_rgb": (lp.mean(0) / np.maximum(la.mean(0), 1e-6)).tolist(), "pixels": int(m.sum())}
 
 
 def main(argv=None) -> int:

@@ -7,9 +7,12 @@ cut out of it). What such a photo does pin:
 
 - the camera's white balance: the light that dominates a photo is white in the photo's colour space, so the
   fitted emitters take white at the luminance the fit found;
-- the camera's auto exposure: it puts the average scene at a known grey, so the light's level is the one at
-  which the photographed surfaces' mean albedo is the world's average reflectance (``AVERAGE_ALBEDO``, the 18 %
-  grey card an exposure meter assumes). The fitted albedo follows the light, so the photos stay explained.
+- the camera's auto exposure: it puts the average scene at a known grey, so the light's level is pinned to
+  the world's average reflectance (``AVERAGE_ALBEDO``, the 18 % grey card an exposure meter assumes): the
+  emitters are scaled by the fitted mean albedo of the photographed surfaces over it, the level at which
+  those surfaces would average it if the emitters carried all of their light (the light the scan's own
+  surfaces send stays as the photos show it, so their mean albedo comes out somewhat above it). The fitted
+  albedo is divided by the same gain per channel, for the shadow pass that takes objects' shadows out of it.
 
 The emitters keep the places and shapes the fit found. One warning line says what was assumed.
 """
@@ -29,9 +32,10 @@ AVERAGE_ALBEDO = 0.18         # mean reflectance of an average scene (the exposu
 
 
 def pin_capture(rl, rho_points: np.ndarray, albedo: float, views: int, name: str):
-    """``rl`` (a fitted :class:`~pipeline.trace.lightfit.RoomLights`) with its emitters white and scaled so the
-    fitted albedo ``rho_points (n, 3)`` of the photographed points averages ``albedo`` in luminance; ``views``
-    is the number of photos the fit had (for the message). The summary records it under ``capture_prior``."""
+    """``rl`` (a fitted :class:`~pipeline.trace.lightfit.RoomLights`) with its emitters white at their
+    luminance, scaled by the mean luminance of the fitted albedo ``rho_points (n, 3)`` of the photographed points
+    over ``albedo``; ``views`` is the number of photos the fit had (for the message). The summary records it
+    under ``capture_prior``."""
     nv = rl.num_mesh_vertices
     rad = rl.radiance.astype(np.float64)
     emit = rad[nv:]

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from pipeline.trace.lightfit.capture import AVERAGE_ALBEDO
+
 # albedo of a ceiling no photo saw: white paint, the surface a room most often leaves white (EN 12464-1
 # recommends 0.7-0.9 for a ceiling)
 CEILING_ALBEDO = 0.8
@@ -34,5 +36,5 @@ class FitSettings:
     ceiling_albedo: float = CEILING_ALBEDO  # the unseen ceiling's albedo, white (0 = the upper walls', as the sides)
     known_complete: bool = False  # the known lights are every light: the fit adds none (trace.lights_complete)
     capture_views: int = 3      # fewer photos than this: the light's level and colour from the camera (``capture``)
-    capture_albedo: float = 0.18  # then: the photographed surfaces' mean albedo (luminance, linear)
+    capture_albedo: float = AVERAGE_ALBEDO  # then: the photographed surfaces' mean albedo (luminance, linear)
     edge_colour: bool = True    # the lights the photos saw clipped take the colour of the pixels their edges cover
