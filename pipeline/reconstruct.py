@@ -81,6 +81,9 @@ def drop_small_components(faces: np.ndarray, n_vertices: int, min_faces: int) ->
     return f[count[flab] >= min_faces]
 
 
+ONE_VIEW_TILT_DEG = 80.0      # a one-photo scan: level surfaces face its camera within this of its image-up
+
+
 def camera_up_vote(T_c2w: np.ndarray) -> np.ndarray:
     """Mean image-up direction (-y of the OpenCV camera) in the world, unit (3,), or zeros if it cancels."""
     v = -T_c2w[:, :3, 1].mean(axis=0)
@@ -120,7 +123,15 @@ def floor_up(vertices: np.ndarray, faces: np.ndarray, T_c2w: np.ndarray,
         M = (n * area[:, None]).T @ n
         vote = np.linalg.eigh(M)[1][:, -1]
     cos_t = np.cos(np.radians(max_tilt_deg))
-    horiz = np.abs(n @ vote) >= cos_t
+    if len(cams) == 1:
+        # one photo (a tabletop capture): its camera may look down at the table far more steeply than
+        # max_tilt_deg, and a wall facing it is then nearer its image-up than the table. A floor or table it
+        # sees faces it and has an upward normal in its image (within ONE_VIEW_TILT_DEG of image-up); a wall
+        # facing it has a downward one, a ceiling faces away
+        n = n * np.where(((cams[0] - cen) * n).sum(axis=1) >= 0, 1.0, -1.0)[:, None]
+        horiz = n @ vote >= np.cos(np.radians(ONE_VIEW_TILT_DEG))
+    else:
+        horiz = np.abs(n @ vote) >= cos_t
     if area[horiz].sum() <= 0:
         up = vote if (cams @ vote).mean() >= (cen @ vote).mean() else -vote
         return up, {"method": "camera vote (no level surfaces in the mesh)"}

@@ -326,3 +326,26 @@ def test_mesh_made_from_one_depth_frame_is_seen_not_enclosing(shared_data, tmp_p
     (tmp_path / "mm.ply").write_bytes(ply_bytes(P * 1000.0, F, None))
     with pytest.raises(InputError, match=r"no camera sees the mesh.*millimetres\?"):
         run_stage(tmp_path / "run2", {"scan": {"paths": [str(scan)], "mesh": str(tmp_path / "mm.ply")}})
+
+
+@pytest.mark.parametrize("pitch_deg", [20.0, 45.0, 65.0])
+def test_floor_up_of_one_photo_looking_down_at_a_table_before_a_wall(pitch_deg):
+    """One camera 1 m from a table top, looking down at it by ``pitch_deg``, a larger wall behind the table
+    (as a tabletop capture's depth shows them): up is the table's normal, however steep the view. A
+    30-degree cone around the image's up keeps the wall (at 90 - pitch from it) and loses the table."""
+    import trimesh
+
+    from pipeline.geometry import look_at
+
+    table = trimesh.creation.box(extents=(1.2, 0.8, 0.04))
+    table.apply_translation((0, 0, 0.73))
+    wall = trimesh.creation.box(extents=(3.0, 0.04, 2.0))
+    wall.apply_translation((0, 0.6, 1.0))
+    V = np.concatenate([table.vertices, wall.vertices])
+    F = np.concatenate([table.faces, wall.faces + len(table.vertices)])
+    target = np.array([0.0, 0.0, 0.75])
+    p = np.radians(pitch_deg)
+    eye = target + 1.0 * np.array([0.0, -np.cos(p), np.sin(p)])
+    mesh = trimesh.Trimesh(V, F).subdivide().subdivide().subdivide()
+    up, _ = floor_up(np.asarray(mesh.vertices), np.asarray(mesh.faces), look_at(eye, target)[None])
+    assert up @ UP > np.cos(np.radians(1.0)), (pitch_deg, up)
