@@ -4,13 +4,16 @@ Written by ``scansynth report RUN`` and at the end of every ``scansynth run``. E
 from the files the stages wrote (nothing is recomputed): ``run.json`` (timings, failures, left-out
 inputs, rejections), ``select/<scene>/selection.json`` (frame selection with scores),
 ``ingest/<scene>/scan.json`` (frames read and kept, registration, up), ``prep``'s object record (what
-each model took to become a solid) and the BOP dataset (sample images with the visible masks, boxes and
-pose axes drawn from the written annotations by :func:`pipeline.preview.draw_annotations`).
+each model took to become a solid), the BOP dataset (sample images with the visible masks, boxes and
+pose axes drawn from the written annotations by :func:`pipeline.preview.draw_annotations`) and each scene's
+fitted lights ``trace/<scene>/lights.npz`` (a top view of the room with its emitters and two photos with
+theirs, drawn by :mod:`pipeline.lightpanel`, beside what the fit found and assumed).
 
 The page is self-contained: no server, nothing fetched from the network; the chart and the thumbnails
 are embedded as ``data:`` URIs, and each thumbnail links to its full-size annotated image in
-``RUN/report/`` (a relative link, so the run folder can be moved or copied as a whole). The timings make
-the page differ from run to run; the annotated images do not.
+``RUN/report/`` (a relative link, so the run folder can be moved or copied as a whole); the lighting
+pictures are embedded at their full 480 px (the photos as JPEG) and link to their PNG in
+``RUN/report/lighting/``. The timings make the page differ from run to run; the images do not.
 """
 
 from __future__ import annotations
@@ -27,12 +30,14 @@ import numpy as np
 from pipeline.bop_layout import SPLIT
 from pipeline.errors import UserError
 from pipeline.io import atomic_write_bytes, encode_image
-from pipeline.runfolder import DATASET_DIR, SCAN_TPATH, SELECTION_TPATH, path
+from pipeline.runfolder import (DATASET_DIR, ROOM_LIGHTS_TPATH, SCAN_TPATH, SELECTION_TPATH, list_scenes, load_scan,
+                                path)
 
 log = logging.getLogger(__name__)
 
 REPORT_NAME = "report.html"
 ASSETS_DIR = "report"          # RUN/report/: full-size annotated sample images
+LIGHTING_DIR = ASSETS_DIR + "/lighting"   # RUN/report/lighting/: the lighting panel's pictures
 MAX_SAMPLES = 12
 THUMB_WIDTH = 320
 # Frame-selection scores (selection.json) in the order the table shows them; others follow by name.
@@ -284,6 +289,204 @@ def _objects(run: Path) -> str:
     return _table(["id", "name", "mass g", "mass properties from", "what it took"], rows, {2})
 
 
+def _lighting(run: Path) -> str:
+    """Each scene's fitted lights (``trace/<scene>/lights.npz``): pictures and what the fit found and assumed,
+    or one line on why there are none. Writes the pictures to ``RUN/report/lighting/`` and removes the ones
+    an earlier invocation wrote that are not shown now."""
+    assets = run / LIGHTING_DIR
+    written: set[str] = set()
+    try:
+        scenes = list_scenes(run)
+        if not scenes:
+            return "<p class=muted>No scan ingested yet.</p>"
+        mode = _lighting_mode(run)
+        return "".join(f"<h3>{_e(scene)}</h3>" + _guarded(run, f"lighting panel of {scene}", _scene_lighting,
+                                                          run, scene, mode, written) for scene in scenes)
+    finally:
+        for old in sorted(assets.glob("*.png")) if assets.is_dir() else ():
+            if old.name not in written:
+                old.unlink(missing_ok=True)
+        if assets.is_dir() and not any(assets.iterdir()):
+            assets.rmdir()
+
+
+def _lighting_mode(run: Path) -> str:
+    """``trace.lighting`` of the run's config.toml (its default where the file does not say)."""
+    import tomllib
+
+    from pipeline.config import TraceConfig
+
+    try:
+        mode = tomllib.loads((run / "config.toml").read_text(encoding="utf-8")).get("trace", {}).get("lighting")
+    except (OSError, ValueError, AttributeError):
+        mode = None
+    return str(mode) if mode else TraceConfig().lighting
+
+
+def _scene_lighting(run: Path, scene: str, mode: str, written: set[str]) -> str:
+    """The lighting panel of one scene (see :func:`_lighting`); the pictures' names are added to ``written``."""
+    import zipfile
+
+    from pipeline.lightpanel import emitters_of
+    from pipeline.trace.lightfit import RoomLights
+
+    rel = ROOM_LIGHTS_TPATH.format(scene=scene)
+    if not (run / rel).is_file():
+        if mode != "fit":
+            return (f'<p class=muted>No fitted lights: trace.lighting is "{_e(mode)}" (set it to "fit" to '
+                    f"recover the room's lights from its photos).</p>")
+        return f"<p class=muted>No fitted lights yet: the trace stage has not fitted them ({_e(rel)} is absent).</p>"
+    try:
+        rl = RoomLights.load(run / rel)
+    except (OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile) as e:
+        return (f"<p class=bad>The fitted lights in {_e(rel)} cannot be read ({_e(type(e).__name__)}: {_e(e)}); "
+                f"re-run the trace stage.</p>")
+    scan = load_scan(run, scene)
+    emitters = emitters_of(rl.summary)
+    have = [i for i, p in enumerate(scan.color_paths) if p]
+    shown = list(zip("AB", sorted({have[0], have[-1]}))) if have else []
+    figs, inview = _light_pictures(run, scene, rl, scan, emitters, shown, written)
+    stale = (f'<p class=bad>trace.lighting is "{_e(mode)}" now: these lights are from an earlier run that fitted '
+             f"them.</p>") if mode != "fit" else ""
+    return (stale + '<div class="grid">' + "".join(figs) + "</div>"
+            + "<p>Top view: the room from above (down the scan's up), coloured by the albedo the fit found; "
+              "discs: the emitters, their area following their share of the power and their colour the "
+              "light's, numbered brightest first; blue: the cameras of the scan, A and B those of the photos. "
+              "On a photo a ring marks an emitter in view (it may be hidden behind a surface), an arrow at "
+              "the border the way to one outside it (or behind the camera).</p>"
+            + _light_facts(rl.summary, emitters) + _emitter_table(rl, scan, emitters, shown, inview))
+
+
+def _light_pictures(run: Path, scene: str, rl, scan, emitters: list, shown: list, written: set[str]) -> tuple:
+    """The top view and the photos of the panel as HTML figures (written to ``RUN/report/lighting/``), and
+    for each shown photo where each emitter is ("in view", "outside", "behind")."""
+    from pipeline.errors import InputError
+    from pipeline.lightpanel import border_arrow, draw_photo, draw_top, top_view, vertex_colours
+    from pipeline.scanformats.common import read_color
+
+    nv, nt = rl.num_mesh_vertices, rl.num_mesh_tris
+    V, F = rl.vertices[:nv], rl.faces[:nt]
+    poses = scan.T_c2w
+    view = top_view(np.concatenate([V, np.reshape([e.centre for e in emitters], (-1, 3)), poses[:, :3, 3]]),
+                    scan.up_w)
+    colours, gain = vertex_colours(rl.albedo[:nv] if rl.albedo is not None else None, rl.radiance[:nv])
+    top = draw_top(view, V, F, colours, emitters, poses, facing=int(rl.summary.get("seen_side", 1) or 0),
+                   marked={label: poses[i] for label, i in shown})
+    caption = f"top view, {len(emitters)} emitters" + (f"; the albedo shown {gain:.1f}x brighter" if gain > 1 else "")
+    figs = [_light_figure(run, f"{scene}_top.png", top, caption, written)]
+    inview: dict[str, list[str]] = {}
+    for label, i in shown:
+        cam = scan.camera(i)
+        inview[label] = ["in view" if border_arrow(cam, e.centre) is None
+                         else "behind" if cam.w2c(e.centre[None])[0, 2] <= 0 else "outside" for e in emitters]
+        what = f"{label}: frame {int(scan.frame_ids[i])}"
+        try:
+            photo = read_color(scan, i)
+        except InputError as e:
+            figs.append(f"<figure><p class=bad>{_e(what)}: {_e(e)}</p></figure>")
+            continue
+        figs.append(_light_figure(run, f"{scene}_frame{int(scan.frame_ids[i]):06d}.png",
+                                  draw_photo(photo, cam, emitters, label=what), what, written, photo=True))
+    return figs, inview
+
+
+def _light_figure(run: Path, name: str, image: np.ndarray, caption: str, written: set[str], *,
+                  photo: bool = False) -> str:
+    """A figure of the lighting panel: ``image`` written to ``RUN/report/lighting/<name>`` (PNG) and embedded
+    in the page (a photo as JPEG, a third of the PNG's size; the top view's flat colours as the PNG)."""
+    import cv2
+
+    rel = f"{LIGHTING_DIR}/{name}"
+    data = encode_image(run / rel, image)
+    atomic_write_bytes(run / rel, data)
+    written.add(name)
+    if photo:
+        _, jpg = cv2.imencode(".jpg", np.ascontiguousarray(image[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 88])
+        uri = _data_uri(jpg.tobytes(), "image/jpeg")
+    else:
+        uri = _data_uri(data, "image/png")
+    return (f'<figure><a href="{_e(rel)}"><img src="{uri}" alt="{_e(caption)}"></a>'
+            f"<figcaption>{_e(caption)}</figcaption></figure>")
+
+
+def _rgb_text(rgb) -> str:
+    v = np.clip(np.nan_to_num(np.asarray(rgb, np.float64)), 0.0, None)
+    return ", ".join(f"{x:.2f}" for x in (v / v.max() if v.max() > 0 else v))
+
+
+def _light_facts(summary: dict, emitters: list) -> str:
+    """What the fit found and what it assumed, in words: only what its summary holds."""
+    from pipeline.color import LUMINANCE_F64
+
+    rows = []
+    note = summary.get("note") or ""
+    if summary.get("fitted") and not note:
+        rows.append(["result", "fitted"])
+    else:
+        rows.append(["result", f"not fitted: {note}" if not summary.get("fitted") else note])
+    n = summary.get("num_lights", len(emitters))
+    kinds: dict[str, int] = {}
+    for e in emitters:
+        kinds[e.kind] = kinds.get(e.kind, 0) + 1
+    rows.append(["lights", f"{n} sampled as lights" + (f" ({len(emitters)} listed below)" if n != len(emitters)
+                                                         else "")
+                 + (": " + ", ".join(f"{v} {k}{'s' if v != 1 else ''}" for k, v in sorted(kinds.items()))
+                    if kinds else "")])
+    if emitters:
+        power = np.array([e.area_m2 * float(e.radiance @ LUMINANCE_F64) for e in emitters])
+        colour = np.sum([e.area_m2 * e.radiance for e in emitters], axis=0)
+        rows.append(["power of the listed lights", f"{power.sum():.4g} (radiance x area: the photos' units x m²); "
+                                                   f"the brightest carries {emitters[0].power_share:.0%}"])
+        rows.append(["their colour (R, G, B; the largest 1)", _rgb_text(colour)])
+    if summary.get("frames") is not None:
+        exp = [float(x) for x in summary.get("exposure") or []]
+        rows.append(["photos the fit explained", f"{summary['frames']}" + (
+            f" (exposure {min(exp):.2f} to {max(exp):.2f})" if len(exp) > 1 else "")])
+    before = " before the few-view prior" if summary.get("capture_prior") else ""   # the prior scales both
+    if summary.get("albedo_level") is not None:
+        rows.append([f"albedo level it chose (R, G, B{before})",
+                     ", ".join(f"{float(x):.2f}" for x in summary["albedo_level"])])
+    if summary.get("albedo_mean") is not None:
+        rows.append([f"mean albedo of the points it fitted (R, G, B{before})",
+                     ", ".join(f"{float(x):.2f}" for x in summary["albedo_mean"])])
+    if summary.get("residual_median") is not None:
+        rows.append(["median error explaining the photos' pixels (relative)",
+                     f"{float(summary['residual_median']):.0%}"])
+    if summary.get("capture_note"):
+        rows.append(["what few views cannot pin", summary["capture_note"]])
+    if summary.get("known_lights"):
+        own = summary.get("own_over_known_power")
+        rows.append(["lights given (trace.lights_file)", f"{summary['known_lights']}" + (
+            f"; the fit added light of its own with {float(own):.2f}x their power" if own is not None else "")])
+    if summary.get("lights_facing_away"):
+        rows.append(["given lights facing away from every camera", _num_list(summary["lights_facing_away"])])
+    if summary.get("ceiling_assumed_m") is not None:
+        rows.append(["ceiling assumed where no photo saw one", f"{float(summary['ceiling_assumed_m']):.2f} m"])
+    return "<h4>What the fit found and what it assumed</h4>" + _table(["", ""], rows)
+
+
+def _num_list(v) -> str:
+    return ", ".join(str(x) for x in v) if isinstance(v, (list, tuple)) else str(v)
+
+
+def _emitter_table(rl, scan, emitters: list, shown: list, inview: dict) -> str:
+    """The listed emitters, brightest first: where (height above the floor: the mesh's lowest 2 %), how large,
+    their share and colour, and where each is on the shown photos."""
+    if not emitters:
+        return ""
+    up = np.asarray(scan.up_w, np.float64)
+    V = np.asarray(rl.vertices[:rl.num_mesh_vertices], np.float64)
+    floor = float(np.percentile(V @ up, 2)) if len(V) else 0.0
+    labels = [label for label, _ in shown]
+    rows = [[k + 1, e.kind, ", ".join(f"{x:.2f}" for x in e.centre), f"{float(e.centre @ up) - floor:.2f}",
+             f"{e.area_m2:.4f}", f"{e.power_share:.1%}", _rgb_text(e.radiance)] + [inview[lb][k] for lb in labels]
+            for k, e in enumerate(emitters)]
+    header = ["#", "kind", "centre x, y, z (m)", "height above floor (m)", "area m²", "power", "colour"] + \
+        [f"photo {lb}" for lb in labels]
+    return (f"<details><summary>the {len(emitters)} listed emitters</summary>"
+            + _table(header, rows, {0, 3, 4, 5}) + "</details>")
+
+
 def _no_rate(report: dict) -> str:
     """Why run.json has no images per hour (``pipeline.report.throughput`` gives it only for a fresh run
     through export)."""
@@ -352,8 +555,7 @@ def render(run_dir: str | Path, *, max_samples: int = MAX_SAMPLES) -> str:
 <section><h2>What was thrown away, and why</h2>{_guarded(run, "rejections", _rejections, report, run)}</section>
 <section><h2>Scans</h2>{_guarded(run, "scans", _scans, run)}</section>
 <section><h2>Objects</h2>{_guarded(run, "objects", _objects, run)}</section>
-<section><h2>Lighting</h2><p class=muted>Recovered room lights are not estimated yet; this panel shows
-them once light recovery lands.</p></section>
+<section><h2>Lighting</h2>{_guarded(run, "lighting panel", _lighting, run)}</section>
 </main></body></html>
 """
 

@@ -166,10 +166,13 @@ def test_run_report_opens_in_chromium_with_every_image(reference, tmp_path):
     artifacts.mkdir(parents=True, exist_ok=True)
     shot = artifacts / "report.png"
     r = browser.check_page(page, tmp_path / "profile", screenshot=shot)
-    assert r["images"] == 1 + min(12, len(images)), r          # the chart and the samples
+    lighting = sorted((out / "report" / "lighting").glob("*.png"))   # the fitted lights: top view and photos
+    assert len(lighting) >= 2, lighting
+    assert r["images"] == 1 + min(12, len(images)) + len(lighting), r      # the chart, samples, lighting
     assert r["broken"] == [] and r["errors"] == [] and r["console_errors"] == [], r
     full = [out / href for href in r["links"]]
-    assert len(full) == min(12, len(images)) and all(p.is_file() and p.stat().st_size > 0 for p in full), full
+    assert len(full) == min(12, len(images)) + len(lighting) and all(p.is_file() and p.stat().st_size > 0
+                                                                     for p in full), full
     assert shot.is_file() and shot.stat().st_size > 10_000
 
 
