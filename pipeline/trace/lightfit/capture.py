@@ -14,7 +14,9 @@ cut out of it). What such a photo does pin:
   surfaces send stays as the photos show it, so their mean albedo comes out somewhat above it). The fitted
   albedo is divided by the same gain per channel, for the shadow pass that takes objects' shadows out of it.
 
-The emitters keep the places and shapes the fit found. One warning line says what was assumed.
+The emitters keep the places and shapes the fit found. One warning line says what was assumed. The summary's
+emitters and albedo figures stay the fit's own; ``capture_prior`` holds the gain that turns them into the
+light the tracer uses.
 """
 
 from __future__ import annotations
