@@ -626,11 +626,11 @@ def main(argv: list[str] | None = None) -> int:
         res[r] = run_room_all(suite / r, work, a.frames, spps, presets, a.reuse, a.bounces)
         done.write_text(json.dumps({"key": key, "result": res[r]}, default=float))
     summary = summarise(res, spps, presets)
-    import bpy  # noqa: F401 - only its version, after the renders (Blender's process rendered them)
+    from importlib.metadata import version   # not bpy itself: its Embree clashes with embreex's in one process
 
     doc = {"summary": summary, "rooms": res,
            "what": "Blender Cycles (CPU, OIDN) vs our oracle variant on the light suite; see bench/cycles.py",
-           "cycles": {"version": bpy.app.version_string, "threads": THREADS, "bounces": a.bounces,
+           "cycles": {"version": version("bpy"), "threads": THREADS, "bounces": a.bounces,
                       "denoiser": "OIDN, albedo + normal guides", "pixel_filter": "box 1 px"},
            "suite": str(suite), "machine": os.uname().nodename, "date": time.strftime("%Y-%m-%d %H:%M")}
     out = Path(a.out)
