@@ -302,8 +302,9 @@ class TraceConfig:
                                    "colour the fit finds, which the albedo's colour sets")
     fit_capture_views: int = option(3, "fit lighting: a scan with fewer photos than this (a one-view capture) cannot pin "
                                     "the light's level or colour: the fitted lights turn white (the camera's white "
-                                    "balance) at the level where the photographed surfaces average "
-                                    "fit_capture_albedo (the camera's auto exposure); 0 = never", min=0)
+                                    "balance) and are scaled by the fitted mean albedo of the photographed "
+                                    "surfaces over fit_capture_albedo (the camera's auto exposure); 0 = never",
+                                    min=0)
     fit_capture_albedo: float = option(0.18, "fit lighting, captures of fewer than fit_capture_views photos: mean "
                                        "albedo (linear luminance) of the photographed surfaces, the average scene's "
                                        "reflectance that exposure meters assume", min=0.01, max=0.95)

@@ -53,8 +53,9 @@ def pin_capture(rl, rho_points: np.ndarray, albedo: float, views: int, name: str
     rad[nv:] = white
     alb = None if rl.albedo is None else (rl.albedo / np.maximum(gain, 1e-6)).astype(np.float32)
     note = (f"{views} view{'s' if views != 1 else ''} cannot pin the light's level or colour: white light (the "
-            f"camera's white balance) at the level where the photographed surfaces average {albedo:.2f} albedo "
-            f"(trace.fit_capture_albedo; the fit's own: {mean_albedo:.2f})")
+            f"camera's white balance), {scale:.2f}x the fit's (its surfaces' mean albedo {mean_albedo:.2f} over "
+            f"{albedo:.2f}, the average scene's reflectance the camera's auto exposure assumes; "
+            f"trace.fit_capture_albedo)")
     log.warning("light fit of %s: %s", name, note)
     summary = dict(rl.summary, capture_prior={"views": views, "albedo": albedo,
                                               "fitted_mean_albedo": round(mean_albedo, 4),
