@@ -1449,3 +1449,16 @@ def test_one_view_takes_the_cameras_white_and_an_average_albedo(caplog):
     lum = np.array([0.2126, 0.7152, 0.0722])
     assert p_cap @ lum > 1.5 * (p_own @ lum), (p_cap, p_own)   # 0.18 is darker than the walls the fit found
     assert any("1 view cannot pin the light" in r.getMessage() for r in caplog.records)
+
+
+def test_one_view_with_lights_handed_in_keeps_their_level_and_colour():
+    """With trace.lights_file the user's lights set the level: a one-view capture pins nothing, and a warm
+    light handed in keeps its colour and radiance in the lights the tracer samples."""
+    v, f, colors = open_room()
+    lamp = np.array([[-1.9, -0.5, 1.2], [-1.9, 0.5, 1.2], [-1.9, 0.5, 2.2], [-1.9, -0.5, 2.2]])  # faces +x
+    warm = np.array([20.0, 15.0, 10.0])
+    rl = fit_room_lights(v, f, colors, frames(1, 120), up=UP, rng=np.random.default_rng(0),
+                         settings=FitSettings(points=300, stride=2, refine=0.0), known_lights=[(lamp, warm)])
+    assert "capture_prior" not in rl.summary
+    nv, nb = len(v), 4 * rl.summary["box_cells"]
+    np.testing.assert_allclose(rl.radiance[nv + nb:nv + nb + 4], np.tile(warm, (4, 1)), rtol=1e-6)

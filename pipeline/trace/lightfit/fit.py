@@ -98,6 +98,6 @@ def _fit(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None, fra
         summary["clipped_edge_raised"] = round(sol.raised, 3)
         say_edge_raise(name, obs.edge_colour, sol.raised)
     rl = room_lights(pb, sol, summary, name, t0)
-    if len(frames) < st.capture_views and sol.level is not None and not st.known_complete:
+    if len(frames) < st.capture_views and sol.level is not None and not room.known_quads:
         rl = pin_capture(rl, sol.rho[pb.patch], st.capture_albedo, len(frames), name)
     return rl
