@@ -51,24 +51,14 @@ class Emitter:
 
 
 def emitters_of(summary: dict) -> list[Emitter]:
-    """The emitters a fit's ``summary`` lists (brightest first) with the light they are rendered with.
-
-    A capture of few views (``summary["capture_prior"]``) renders every emitter white at its fitted luminance
-    times ``fitted_mean_albedo / albedo`` (:func:`pipeline.trace.lightfit.capture.pin_capture`); the listed
-    radiance is the fit's before that, so it is converted here. Entries without a finite centre are skipped.
-    """
-    prior = summary.get("capture_prior") or {}
-    scale = None
-    if prior.get("albedo") and prior.get("fitted_mean_albedo"):
-        scale = float(prior["fitted_mean_albedo"]) / float(prior["albedo"])
+    """The emitters a fit's ``summary`` lists (brightest first), with the radiance they are rendered with.
+    Entries without a finite centre are skipped."""
     out = []
     for e in summary.get("emitters") or []:
         c = np.asarray(e.get("centre", ()), np.float64)
         rad = np.asarray(e.get("radiance", (0.0, 0.0, 0.0)), np.float64)
         if c.shape != (3,) or rad.shape != (3,) or not np.all(np.isfinite(c)):
             continue
-        if scale is not None:
-            rad = np.full(3, float(rad @ LUMINANCE_F64) * scale)
         out.append(Emitter(centre=c, area_m2=float(e.get("area_m2", 0.0)), radiance=rad,
                            power_share=float(e.get("power_share", 0.0)), kind=str(e.get("kind", "?"))))
     return out

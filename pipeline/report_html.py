@@ -442,12 +442,11 @@ def _light_facts(summary: dict, emitters: list) -> str:
         exp = [float(x) for x in summary.get("exposure") or []]
         rows.append(["photos the fit explained", f"{summary['frames']}" + (
             f" (exposure {min(exp):.2f} to {max(exp):.2f})" if len(exp) > 1 else "")])
-    before = " before the few-view prior" if summary.get("capture_prior") else ""   # the prior scales both
     if summary.get("albedo_level") is not None:
-        rows.append([f"albedo level it chose (R, G, B{before})",
+        rows.append(["albedo level it chose (R, G, B)",
                      ", ".join(f"{float(x):.2f}" for x in summary["albedo_level"])])
     if summary.get("albedo_mean") is not None:
-        rows.append([f"mean albedo of the points it fitted (R, G, B{before})",
+        rows.append(["mean albedo of the points it fitted (R, G, B)",
                      ", ".join(f"{float(x):.2f}" for x in summary["albedo_mean"])])
     if summary.get("residual_median") is not None:
         rows.append(["median error explaining the photos' pixels (relative)",

@@ -215,8 +215,8 @@ def two_view_fit():
 
 
 def test_a_few_view_capture_draws_the_light_it_renders_with(two_view_fit):
-    """Two views take white light at the camera's level (pipeline/trace/lightfit/capture.py): the summary lists
-    the fit's colours from before, the panel the radiance of the lamps the tracer samples."""
+    """Two views take white light at the camera's level (pipeline/trace/lightfit/capture.py): the panel draws
+    the radiance of the lamps the tracer samples."""
     from pipeline.lightpanel import emitters_of
 
     rl = two_view_fit

@@ -14,9 +14,10 @@ cut out of it). What such a photo does pin:
   surfaces send stays as the photos show it, so their mean albedo comes out somewhat above it). The fitted
   albedo is divided by the same gain per channel, for the shadow pass that takes objects' shadows out of it.
 
-The emitters keep the places and shapes the fit found. One warning line says what was assumed. The summary's
-emitters and albedo figures stay the fit's own; ``capture_prior`` holds the gain that turns them into the
-light the tracer uses.
+The emitters the fit made (the closing box's cells and the lamps) keep their places and shapes; a light a photo
+saw keeps its own radiance, and with lights handed in (``trace.lights_file``) the user's level stands and nothing
+is pinned. The summary's emitters and albedo figures are those of the light the tracer uses; ``capture_prior``
+keeps the gain from the fit's own. One warning line says what was assumed.
 """
 
 from __future__ import annotations
@@ -57,7 +58,11 @@ def pin_capture(rl, rho_points: np.ndarray, albedo: float, views: int, name: str
             f"{albedo:.2f}, the average scene's reflectance the camera's auto exposure assumes; "
             f"trace.fit_capture_albedo)")
     log.warning("light fit of %s: %s", name, note)
-    summary = dict(rl.summary, capture_prior={"views": views, "albedo": albedo,
+    emitters = [dict(e, radiance=[round(float(np.asarray(e["radiance"], np.float64) @ LUMINANCE_F64) * scale, 4)] * 3)
+                for e in rl.summary.get("emitters", [])]
+    per_channel = {k: [round(float(x) / float(g), 4) for x, g in zip(rl.summary[k], gain)]
+                   for k in ("albedo_level", "albedo_mean") if rl.summary.get(k) is not None}
+    summary = dict(rl.summary, emitters=emitters, **per_channel, capture_prior={"views": views, "albedo": albedo,
                                               "fitted_mean_albedo": round(mean_albedo, 4),
                                               "gain_rgb": [round(float(g), 4) for g in gain]},
                    capture_note=note)
