@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import colorsys
+import dataclasses
 import logging
 import sys
 import time
@@ -111,7 +112,7 @@ def generated_spec(seed: int) -> tuple[RoomSpec, dict]:
         alb = walls.get(s.name) or other.get(s.name)
         if s.name == "floor" or s.name == "table_top":
             alb = tuple(round(0.6 * a, 3) for a in alb)          # floors and tables darker than walls
-        surfaces.append(type(s)(s.name, s.quads, s.kind, alb if alb else s.base, s.metres_per_repeat))
+        surfaces.append(s if alb is None else dataclasses.replace(s, base=alb))
     kinds = sorted(rng.choice(LIGHT_KINDS, size=int(rng.integers(1, 3)), replace=False).tolist())
     level = float(rng.uniform(0.7, 1.15) * LEVEL)
     capture = "one-view" if rng.uniform() < 0.35 else "whole"
@@ -205,7 +206,7 @@ def evaluate(cache: Path, work: Path, seeds, sets: list[str], out: Path | None) 
         for name, row in r.items():
             res.add_point(g, speed=row["fit_s"], accuracy=row["psnr_objects"], label=name[4:])
     res.figures.update({"groups": figures, "rooms": rows, "settings": sets, "small": SMALL})
-    res.write(out) if out else res.write(RESULTS)
+    res.write(out or RESULTS)
     return figures
 
 

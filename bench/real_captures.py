@@ -112,7 +112,7 @@ def objects_of(cap: Path, min_visib: float) -> list[dict]:
     return out
 
 
-def prepare(cap: Path, inst: dict, models: Path, work: Path, extra: list[str]) -> dict:
+def prepare(cap: Path, inst: dict, models: Path, work: Path) -> dict:
     """A one-image scan of ``cap`` with ``inst``'s own surface cut out, its poses file and config; the
     scored pixels and the naive paste."""
     import cv2
@@ -151,7 +151,7 @@ def prepare(cap: Path, inst: dict, models: Path, work: Path, extra: list[str]) -
                    f"[objects]\npaths = [{json.dumps(str(models_dir))}]\n\n"
                    f"[raster]\nmin_visible_area = 0.0005\n")   # small objects on a whole photo
     return {"photo": photo, "scored": scored, "paste": _paste(model, np.where(scored, obj, 0.0), K, inst["T_m2c"]),
-            "config": cfg, "cut_px": int(cut.sum()), "K": K}
+            "config": cfg, "cut_px": int(cut.sum())}
 
 
 def run_capture(cfg: Path, inst: dict, run: Path, extra: list[str]) -> tuple[np.ndarray, float, dict]:
@@ -190,7 +190,6 @@ def light_power(rl) -> dict:
     rad = rl.radiance[f].mean(axis=1).astype(np.float64)
     emit = np.zeros(len(f), bool)
     emit[rl.num_mesh_tris:] = True         # the closing box and the lamps: what the fit made emit
-    emit |= rl.light_tri
     p = (rad[emit] * area[emit, None]).sum(axis=0) * math.pi
     return {"power_rgb": p.tolist(), "note": rl.summary.get("note", ""),
             "capture_note": rl.summary.get("capture_note", "")}
@@ -234,7 +233,7 @@ def main(argv=None) -> int:
             if wd.exists():
                 shutil.rmtree(wd)
             wd.mkdir(parents=True)
-            p = prepare(cap, inst, CAPTURE_MODELS[cap.name], wd, extra)
+            p = prepare(cap, inst, CAPTURE_MODELS[cap.name], wd)
             if p["scored"].sum() < MIN_SCORED:
                 continue
             ours, secs, lights = run_capture(p["config"], inst, wd / "run", extra)

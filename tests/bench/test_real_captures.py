@@ -24,7 +24,7 @@ def test_cat_inserted_at_its_true_pose_matches_the_photo_brighter_than_a_naive_p
     if not cap.is_dir():
         pytest.skip(f"{cap} is absent (see ../shared/data/README.md)")
     inst = next(i for i in rc.objects_of(cap, 0.6) if i["obj_id"] == CAT)
-    p = rc.prepare(cap, inst, rc.CAPTURE_MODELS[CAPTURE], tmp_path, [])
+    p = rc.prepare(cap, inst, rc.CAPTURE_MODELS[CAPTURE], tmp_path)
     assert p["scored"].sum() > rc.MIN_SCORED and p["cut_px"] > p["scored"].sum()
     ours, _, lights = rc.run_capture(p["config"], inst, tmp_path / "run", [])
     s = rc.score(p["photo"], ours, p["paste"], p["scored"])
