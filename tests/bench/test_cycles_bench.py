@@ -13,6 +13,8 @@ import json
 import numpy as np
 import pytest
 
+from tests.bench.suite import need_suite_renderer
+
 needs_bpy = pytest.mark.skipif(importlib.util.find_spec("bpy") is None,
                                reason="bpy is a bench-only dependency: .venv/bin/pip install --no-deps bpy==4.2.0")
 
@@ -108,11 +110,8 @@ def test_objects_land_where_opencv_projects_them(tmp_path):
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory):
-    pytest.importorskip("mitsuba", reason="Mitsuba 3 is a test-only dependency (pip install mitsuba)")
-    from bench.lightsuite import LMO, TINY, build_suite
-
-    if not LMO.is_dir():
-        pytest.skip(f"the LM-O models are not at {LMO} (see ../shared/data/README.md)")
+    need_suite_renderer()
+    from bench.lightsuite import TINY, build_suite
     root = tmp_path_factory.mktemp("cycles")
     build_suite(root / "suite", ("spot",), **TINY)
     from bench.cycles import main

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from bench.lightgen import HELD_OUT_SEEDS, TUNE_SEEDS, generated_spec, group_figures, seed_list
+from tests.bench.suite import need_suite_renderer
 
 
 def test_a_seed_draws_one_room_and_the_seeds_draw_different_rooms():
@@ -41,11 +42,8 @@ def test_white_balanced_room_renders_grey_on_average(tmp_path):
     """A generated room rendered small: the camera's white balance makes the photo's mean colour grey (the
     room's light and walls are coloured; without it the mean is not grey), and the truth has the same white
     balance (equal to the photo outside the objects' crop)."""
-    pytest.importorskip("mitsuba", reason="Mitsuba 3 is a test-only dependency (pip install mitsuba)")
-    from bench.lightsuite import LMO, TINY, build_room
-
-    if not LMO.is_dir():
-        pytest.skip(f"the LM-O models are not at {LMO} (see ../shared/data/README.md)")
+    need_suite_renderer()
+    from bench.lightsuite import TINY, build_room
     spec, how = generated_spec(0)
     rec = build_room(tmp_path, spec.name, frames=1, spec=spec, room_seed=1, obj_ids=how["obj_ids"],
                      **{k: v for k, v in TINY.items() if k not in ("frames", "spp")}, spp_photo=16)

@@ -14,6 +14,8 @@ import json
 import numpy as np
 import pytest
 
+from tests.bench.suite import need_suite_renderer
+
 pytestmark = pytest.mark.slow
 
 ROOMS = ("ceiling", "window")
@@ -21,11 +23,8 @@ ROOMS = ("ceiling", "window")
 
 @pytest.fixture(scope="module")
 def suite(tmp_path_factory):
-    pytest.importorskip("mitsuba", reason="Mitsuba 3 is a test-only dependency (pip install mitsuba)")
-    from bench.lightsuite import LMO, TINY, build_suite
-
-    if not LMO.is_dir():
-        pytest.skip(f"the LM-O models are not at {LMO} (see ../shared/data/README.md)")
+    need_suite_renderer()
+    from bench.lightsuite import TINY, build_suite
     out = tmp_path_factory.mktemp("lightsuite")
     build_suite(out, ROOMS, **{**TINY, "frames": 4})
     return out
